@@ -1,0 +1,110 @@
+"""The ``invglare`` command.
+
+Heavy imports (JAX, the models) happen inside the commands so that ``--help`` is
+instant. A user mistake (any :class:`~invglare.errors.InvglareError`) is printed as
+one line on stderr with exit status 2; anything else is a bug and keeps its traceback.
+"""
+
+from __future__ import annotations
+
+import functools
+import logging
+import sys
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+from invglare.errors import InvglareError
+
+app = typer.Typer(
+    name="invglare",
+    help="Differentiable glare models: PSFs of eyes and cameras, fitted to photos.",
+    no_args_is_help=True,
+    add_completion=False,
+    pretty_exceptions_enable=False,
+)
+
+log = logging.getLogger("invglare")
+
+
+def _reports_user_errors(command):
+    """Turn an InvglareError into one clear line and a non-zero exit."""
+
+    @functools.wraps(command)
+    def wrapper(*args, **kwargs):
+        try:
+            return command(*args, **kwargs)
+        except InvglareError as err:
+            typer.echo(f"invglare: error: {err}", err=True)
+            raise typer.Exit(code=2) from None
+        except KeyboardInterrupt:
+            typer.echo("invglare: interrupted; nothing half-written was left behind", err=True)
+            raise typer.Exit(code=130) from None
+
+    return wrapper
+
+
+@app.callback()
+def _main(
+    verbose: Annotated[int, typer.Option("--verbose", "-v", count=True, help="More logging.")] = 0,
+    quiet: Annotated[bool, typer.Option("--quiet", "-q", help="Only errors.")] = False,
+) -> None:
+    level = logging.ERROR if quiet else (logging.DEBUG if verbose > 1 else logging.INFO)
+    logging.basicConfig(level=level, format="%(message)s", stream=sys.stderr)
+
+
+@app.command()
+@_reports_user_errors
+def psf(
+    config: Annotated[Path, typer.Argument(help="Model config (TOML).")],
+    out: Annotated[Path, typer.Option("--out", "-o", help="Output EXR file.")] = Path("psf.exr"),
+    npix: Annotated[int | None, typer.Option(help="Output size in pixels.")] = None,
+    pixel_scale_deg: Annotated[
+        float | None, typer.Option("--pixel-scale-deg", help="Output pixel scale (deg/px).")
+    ] = None,
+    wavelengths_nm: Annotated[
+        str | None,
+        typer.Option(
+            "--wavelengths-nm", help="One value (550), a list (450,550,650) or 380:770:32."
+        ),
+    ] = None,
+    half: Annotated[bool, typer.Option(help="Write half-float pixels.")] = False,
+    png: Annotated[
+        Path | None, typer.Option(help="Also write a log-scaled PNG preview here.")
+    ] = None,
+) -> None:
+    """Compute the PSF of a model and write it as a self-describing OpenEXR file.
+
+    A monochrome PSF is channel Y, a spectral one linear R, G, B; the header holds
+    pixelScaleDeg, wavelengthsNm and the full model config.
+    """
+    from invglare.commands.psf import run_psf
+
+    run_psf(config, out, npix, pixel_scale_deg, wavelengths_nm, half, png)
+
+
+@app.command()
+@_reports_user_errors
+def bench(
+    cases: Annotated[
+        list[str] | None, typer.Argument(help="Run only cases whose names contain these.")
+    ] = None,
+    out_dir: Annotated[Path, typer.Option(help="Where bench.md and bench.json go.")] = Path(
+        "reports"
+    ),
+    sizes: Annotated[str, typer.Option(help="Comma-separated N values.")] = "256,512,1024,2048",
+    repeats: Annotated[int, typer.Option(help="Timed repetitions per case.")] = 20,
+) -> None:
+    """Benchmark the pipelines against the bare FFT floor measured in the same run."""
+    from invglare.bench.runner import run_bench
+
+    run_bench(cases or [], out_dir, [int(s) for s in sizes.split(",")], repeats)
+
+
+def main() -> None:
+    app()
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,244 @@
+"""AperturePSF: Airy pattern, FFT vs MFT, spectral modes, Fresnel limit, gradients, bad input."""
+
+import math
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from helpers import assert_grad_matches_fd, x64
+from scipy.special import j1
+
+from invglare.aperture import Aperture, Capsule, Disk, RegularPolygon
+from invglare.errors import ConfigError, PhysicsRangeError
+from invglare.models.aperture_psf import AperturePSF
+from invglare.optics.fourier import mft2
+
+AIRY_ZEROS = (1.2196698912665045, 2.2331305943815286, 3.2383154841662362)  # in lambda / D
+
+
+def airy(u):
+    """[2 J1(pi u) / (pi u)]^2 with u in units of lambda / D."""
+    x = np.pi * np.asarray(u, float)
+    safe = np.where(x == 0, 1.0, x)
+    return np.where(x == 0, 1.0, (2 * j1(safe) / safe) ** 2)
+
+
+@pytest.fixture(scope="module")
+def pupil_128px():
+    """A 4 mm pupil with 128 px across it (window 136 px), float64, at 550 nm."""
+    with x64():
+        model = AperturePSF.build(
+            Aperture((Disk(4.0),)),
+            focal_length_mm=17.0,
+            wavelengths_nm=550.0,
+            npix=64,
+            pixel_scale_deg=0.01,
+            aperture_npix=136,
+            window_mm=4.0 * 136 / 128,
+        )
+        t = model.transmission()
+        coords = model.grid.coords_mm()
+        yield model, t, coords
+
+
+def _cut(t, coords, u, lam_mm=550e-6, d_mm=4.0):
+    """|FT|^2 along the x axis at u (lambda / D), normalised to the centre."""
+    fx = jnp.asarray(u) / d_mm
+    amp = mft2(t, coords, jnp.zeros(1), fx)[0]
+    centre = mft2(t, coords, jnp.zeros(1), jnp.zeros(1))[0, 0]
+    return np.abs(np.asarray(amp)) ** 2 / abs(complex(centre)) ** 2
+
+
+def test_airy_first_dark_ring_within_2e4_relative(pupil_128px):
+    _, t, coords = pupil_128px
+    with x64():
+        for direction in (0.0, 0.7):  # along x and along a slanted cut (rotate the raster)
+            u = np.linspace(1.20, 1.24, 801)
+            if direction == 0.0:
+                profile = _cut(t, coords, u)
+            else:
+                freqs = jnp.asarray(u) / 4.0
+                amp = jax.vmap(
+                    lambda f: jnp.sum(
+                        t
+                        * jnp.exp(
+                            -2j
+                            * jnp.pi
+                            * f
+                            * (
+                                math.cos(direction) * coords[None, :]
+                                + math.sin(direction) * coords[:, None]
+                            )
+                        )
+                    )
+                )(freqs)
+                profile = np.abs(np.asarray(amp)) ** 2
+            k = int(np.argmin(profile))
+            # Parabola through the three samples around the minimum.
+            a, b, c = profile[k - 1 : k + 2]
+            zero = u[k] + 0.5 * (a - c) / (a - 2 * b + c) * (u[1] - u[0])
+            assert abs(zero / AIRY_ZEROS[0] - 1) < 2e-4, (direction, zero)
+
+
+def test_airy_profile_within_1e4_of_peak_to_third_ring(pupil_128px):
+    _, t, coords = pupil_128px
+    with x64():
+        u = np.linspace(0, AIRY_ZEROS[2] + 0.05, 700)
+        err = np.abs(_cut(t, coords, u) - airy(u)).max()
+        assert err < 1e-4, f"max deviation {err:.2e} of peak"
+
+
+def test_model_psf_is_unit_energy_airy_in_2d(pupil_128px):
+    """The model output on a 2D grid follows the Airy pattern and its peak energy formula."""
+    model, _, _ = pupil_128px
+    with x64():
+        psf = np.asarray(model())
+        theta = np.asarray(model.output.coords_rad())
+        lam_over_d = 550e-6 / 4.0
+        rr = np.hypot(theta[:, None], theta[None, :]) / lam_over_d
+        # Peak energy per pixel: (sum t d^2)^2 / (sum t^2 d^2) * (dtheta / lambda)^2.
+        t = np.asarray(model.transmission())
+        pitch2 = float(model.grid.pitch_mm) ** 2
+        peak = (t.sum() * pitch2) ** 2 / ((t**2).sum() * pitch2)
+        peak *= (float(model.output.pixel_scale_rad) / 550e-6) ** 2
+        np.testing.assert_allclose(psf, peak * airy(rr), atol=2e-4 * peak)
+        assert np.unravel_index(np.argmax(psf), psf.shape) == (32, 32)
+
+
+def test_fft_and_mft_methods_agree_where_samplings_coincide():
+    ap = Aperture((RegularPolygon(6, 4.0, rotation_deg=10.0, rounding=0.3),))
+    fast = AperturePSF.build(
+        ap, focal_length_mm=17.0, wavelengths_nm=550.0, npix=128, aperture_npix=64
+    )
+    assert fast.method == "fft"
+    exact = AperturePSF.build(
+        ap,
+        focal_length_mm=17.0,
+        wavelengths_nm=550.0,
+        npix=128,
+        aperture_npix=64,
+        pixel_scale_deg=float(fast.output.pixel_scale_deg),
+        method="mft",
+    )
+    auto = AperturePSF.build(
+        ap,
+        focal_length_mm=17.0,
+        wavelengths_nm=550.0,
+        npix=128,
+        aperture_npix=64,
+        pixel_scale_deg=float(fast.output.pixel_scale_deg),
+    )
+    assert exact.method == "mft" and auto.method == "fft"
+    a, b = np.asarray(fast()), np.asarray(exact())
+    np.testing.assert_allclose(a, b, atol=2e-6 * a.max())
+    assert a.sum() == pytest.approx(1.0, abs=1e-5)
+
+
+def test_spectral_scaled_copies_close_to_exact_and_y_has_unit_energy():
+    ap = Aperture((Disk(3.0),))
+    # 11 px per lambda / D at the 575 nm reference: bilinear resampling stays accurate.
+    kwargs = dict(
+        focal_length_mm=17.0,
+        wavelengths_nm=np.arange(400, 701, 20.0),
+        npix=128,
+        pixel_scale_deg=0.001,
+        aperture_npix=96,
+    )
+    exact = np.asarray(AperturePSF.build(ap, spectral="exact", **kwargs)())
+    scaled = np.asarray(AperturePSF.build(ap, spectral="scaled", **kwargs)())
+    assert exact.shape == (128, 128, 3)
+    rel = np.linalg.norm(exact - scaled) / np.linalg.norm(exact)
+    assert rel < 2e-2, f"scaled copies vs exact: relative L2 {rel:.2e}"
+    # Luminance of an equal-energy white PSF sums to the encircled energy (< 1, > 0.95 here).
+    from invglare.optics.spectral import _xyz_to_rgb_matrix
+
+    y = (exact @ np.linalg.inv(_xyz_to_rgb_matrix("sRGB")).T)[..., 1]
+    assert 0.95 < y.sum() <= 1.0 + 1e-5
+
+
+def test_fresnel_tends_to_fraunhofer_at_long_distance():
+    ap = Aperture((Disk(2.0), Capsule((-1.0, 0.2), (1.0, 0.4), 0.05)))
+    common = dict(wavelengths_nm=550.0, npix=96, pixel_scale_deg=0.005, aperture_npix=64)
+    far = AperturePSF.build(ap, focal_length_mm=1e9, propagation="fresnel", **common)
+    fraunhofer = AperturePSF.build(ap, focal_length_mm=17.0, **common)
+    np.testing.assert_allclose(far(), fraunhofer(), atol=1e-6 * float(fraunhofer().max()))
+    near = AperturePSF.build(ap, focal_length_mm=200.0, propagation="fresnel", **common)
+    assert float(jnp.abs(near() - fraunhofer()).max()) > 1e-3 * float(fraunhofer().max())
+
+
+def _loss(model, leaf_getter, weights):
+    def f(value):
+        return jnp.sum(weights * eqx.tree_at(leaf_getter, model, value)())
+
+    return f
+
+
+@pytest.mark.parametrize(
+    ("name", "getter", "x0", "eps"),
+    [
+        ("diameter", lambda m: m.aperture.shapes[0].diameter_mm, 2.013, 1e-6),
+        ("wavelength", lambda m: m.wavelengths_nm, 551.3, 1e-3),
+        ("focal length", lambda m: m.focal_length_mm, 123.4, 1e-4),
+        ("lash thickness", lambda m: m.aperture.shapes[1].thickness_mm, 0.0513, 1e-7),
+    ],
+)
+def test_model_gradients_match_finite_differences(name, getter, x0, eps):
+    with x64():
+        ap = Aperture((Disk(2.0), Capsule((-1.1, 0.23), (1.07, 0.41), 0.05)))
+        model = AperturePSF.build(
+            ap,
+            focal_length_mm=123.4,
+            wavelengths_nm=551.3,
+            npix=32,
+            pixel_scale_deg=0.01,
+            aperture_npix=48,
+            propagation="fresnel",
+        )
+        weights = jnp.asarray(np.random.default_rng(0).random((32, 32)))
+        f = _loss(model, getter, weights)
+        if name == "wavelength":
+            f = _loss(model, getter, weights)
+            g = f
+            f = lambda v: g(jnp.reshape(v, (1,)))  # noqa: E731
+        assert_grad_matches_fd(f, x0, eps=eps, rtol=1e-4)
+
+
+def test_model_jit_and_vmap_over_diameters_match_loop():
+    model = AperturePSF.build(
+        Aperture((Disk(3.0),)),
+        focal_length_mm=17.0,
+        wavelengths_nm=550.0,
+        npix=64,
+        aperture_npix=48,
+    )
+    diameters = jnp.asarray([2.0, 2.5, 3.0])
+
+    def psf_for(d):
+        return eqx.tree_at(lambda m: m.aperture.shapes[0].diameter_mm, model, d)()
+
+    batched = jax.jit(jax.vmap(psf_for))(diameters)
+    for i, d in enumerate(diameters):
+        np.testing.assert_allclose(batched[i], psf_for(d), rtol=1e-4, atol=1e-8)
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "error", "pattern"),
+    [
+        (dict(window_mm=3.0), PhysicsRangeError, "does not fit in window_mm = 3"),
+        (dict(method="mft"), ConfigError, "needs pixel_scale_deg"),
+        (dict(method="fft", pixel_scale_deg=0.0004), ConfigError, "needs M = "),
+        (dict(pixel_scale_deg=0.05), PhysicsRangeError, "supports only"),
+        (dict(wavelengths_nm=5.5e-7), PhysicsRangeError, "metres"),
+        (dict(focal_length_mm=-1.0), PhysicsRangeError, "focal_length_mm must be finite and > 0"),
+        (dict(propagation="rayleigh"), ConfigError, "'rayleigh' is not one of"),
+        (dict(wavelengths_nm=[450.0, 550.0]), ConfigError, "spectral = 'scaled'"),
+        (dict(npix=4), PhysicsRangeError, "npix must be an integer >= 8, got 4"),
+    ],
+)
+def test_build_rejects_bad_settings(kwargs, error, pattern):
+    base = dict(focal_length_mm=17.0, wavelengths_nm=550.0, npix=64, aperture_npix=64)
+    base.update(kwargs)
+    with pytest.raises(error, match=pattern):
+        AperturePSF.build(Aperture((Disk(4.0),)), **base)
