@@ -12,6 +12,7 @@ from invglare.io.atomic import (
     write_text_atomic,
 )
 from invglare.io.exr import (
+    CHANNELS_ATTR,
     CONFIG_ATTR,
     PIXEL_SCALE_ATTR,
     VERSION_ATTR,
@@ -30,6 +31,7 @@ from invglare.io.images import (
 )
 
 __all__ = [
+    "CHANNELS_ATTR",
     "CONFIG_ATTR",
     "PIXEL_SCALE_ATTR",
     "SUPPORTED_IMAGE_EXTENSIONS",

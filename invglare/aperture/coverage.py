@@ -1,0 +1,177 @@
+"""Exact area coverage of a square pixel by a half-plane.
+
+Every soft shape in invglare is rasterised the same way: for each pixel, the
+shape supplies the signed distance from the pixel centre to its boundary and the
+boundary's outward unit normal there; the boundary is then treated as a straight
+line (a half-plane) across the pixel, whose covered area has a closed form.
+Straight edges are therefore exact; curved edges carry an error of about
+``w**3 / (24 * R)`` px² per pixel (chord `w` px, radius of curvature `R` px), which
+:func:`curved_edge_coverage` removes to first order in ``1 / R`` by subtracting the
+sliver between the tangent line and the curve.
+
+Why it works: if a point is drawn uniformly from a unit pixel, its offset from
+the pixel centre projected on the normal ``(nx, ny)`` is ``nx*U + ny*V`` with
+``U, V ~ Uniform(-1/2, 1/2)``; that is the sum of two uniforms of widths
+``a = max(|nx|, |ny|)`` and ``b = min(|nx|, |ny|)``, whose density is a
+trapezoid on ``[-(a+b)/2, (a+b)/2]``. The point is inside the half-plane when
+its offset is below ``-sd``, so the covered fraction is the trapezoid's CDF at
+``-sd``: quadratic, then linear, then quadratic.
+"""
+
+from __future__ import annotations
+
+import jax.numpy as jnp
+from jaxtyping import Array, ArrayLike, Float
+
+#: Lower clamp of the trapezoid's short width `b`: keeps the quadratic pieces finite (and
+#: their gradients free of NaN) for axis-aligned edges, where `b` is 0. Changes coverage by
+#: at most ``b / 8 ~ 1e-7``.
+_MIN_WIDTH = 1e-6
+
+
+def _lower_tail(t: Array, a: Array, b: Array) -> Array:
+    """Trapezoid CDF at ``t <= 0`` (the half below the median, where precision is best)."""
+    s = t + 0.5 * (a + b)  # distance from the left end of the support
+    s_pos = jnp.maximum(s, 0.0)
+    quad = s_pos * s_pos / (2.0 * a * b)
+    # Written as (t + a/2) / a rather than (s - b/2) / a so that an axis-aligned edge
+    # (a = 1) gives exactly 0.5 - sd.
+    lin = (t + 0.5 * a) / a
+    return jnp.where(s <= 0.0, 0.0, jnp.where(s < b, quad, lin))
+
+
+def edge_coverage(
+    sd_px: Float[ArrayLike, "*shape"],
+    nx: Float[ArrayLike, "*shape"],
+    ny: Float[ArrayLike, "*shape"],
+) -> Float[Array, "*shape"]:
+    """Fraction of a unit square pixel lying inside a half-plane.
+
+    **Arguments:**
+
+    - `sd_px`: signed distance from the pixel centre to the half-plane's edge, in
+      pixels; positive when the pixel centre is outside.
+    - `nx`, `ny`: the edge's outward *unit* normal (x to the right, y up; the
+      coverage only depends on `|nx|`, `|ny|`, so the convention of the y axis
+      does not matter). Callers normalise it.
+
+    All three broadcast against each other.
+
+    **Returns:**
+
+    The covered fraction in ``[0, 1]``: exactly ``clip(0.5 - sd_px, 0, 1)`` for an
+    axis-aligned edge, 0 when ``sd_px >= (|nx| + |ny|) / 2`` and 1 when
+    ``sd_px <= -(|nx| + |ny|) / 2``. It is continuously differentiable in `sd_px`
+    and in the normal, and its gradients are finite everywhere.
+
+    **Example:**
+
+    ```python
+    edge_coverage(0.25, 1.0, 0.0)  # 0.25: a vertical edge a quarter pixel left of the centre
+    ```
+    """
+    sd_px = jnp.asarray(sd_px)
+    ax = jnp.abs(jnp.asarray(nx))
+    ay = jnp.abs(jnp.asarray(ny))
+    a = jnp.maximum(jnp.maximum(ax, ay), _MIN_WIDTH)
+    b = jnp.maximum(jnp.minimum(ax, ay), _MIN_WIDTH)
+    x = -sd_px
+    # Evaluate the lower half only and mirror it (CDF(x) = 1 - CDF(-x)); the branch is
+    # chosen with `where` rather than `abs` so that the derivative at x = 0 is the density.
+    below = x <= 0.0
+    t = jnp.where(below, x, -x)
+    tail = _lower_tail(t, a, b)
+    return jnp.where(below, tail, 1.0 - tail)
+
+
+def tangent_chord(
+    sd_px: Float[ArrayLike, "*shape"],
+    nx: Float[ArrayLike, "*shape"],
+    ny: Float[ArrayLike, "*shape"],
+) -> tuple[Float[Array, "*shape"], Float[Array, "*shape"]]:
+    """Where the edge line crosses the pixel, as an interval of tangent coordinate (px).
+
+    The edge line is ``q(t) = -sd_px * n + t * (-ny, nx)`` in coordinates centred on the
+    pixel (``t = 0`` is the foot of the perpendicular from the pixel centre). Returns
+    ``(t_lo, t_hi)``, clipped to ``[-1, 1]`` and with ``t_hi == t_lo`` when the line
+    misses the pixel.
+    """
+    sd_px = jnp.asarray(sd_px)
+    nx = jnp.asarray(nx)
+    ny = jnp.asarray(ny)
+    # Each of |qx| <= 1/2 and |qy| <= 1/2 confines t to an interval (to all t when the
+    # normal lies along that axis: the clamp turns that into a huge interval and leaves the
+    # other constraint to decide).
+    nx_s = jnp.where(jnp.abs(nx) > _MIN_WIDTH, nx, _MIN_WIDTH)
+    ny_s = jnp.where(jnp.abs(ny) > _MIN_WIDTH, ny, _MIN_WIDTH)
+    c1, h1 = -sd_px * nx / ny_s, 0.5 / jnp.abs(ny_s)
+    c2, h2 = sd_px * ny / nx_s, 0.5 / jnp.abs(nx_s)
+    # A chord inside the pixel has |t| <= sqrt(2)/2; clipping to [-1, 1] keeps later powers
+    # of t finite however large the clamped intervals are.
+    t_lo = jnp.clip(jnp.maximum(c1 - h1, c2 - h2), -1.0, 1.0)
+    t_hi = jnp.clip(jnp.minimum(c1 + h1, c2 + h2), t_lo, 1.0)
+    return t_lo, t_hi
+
+
+def sliver_integral(
+    t_lo: ArrayLike,
+    t_hi: ArrayLike,
+    t0: ArrayLike = 0.0,
+    t1: ArrayLike = -2.0,
+    t2: ArrayLike = 2.0,
+) -> Array:
+    """``integral of D(t) dt`` over ``[t_lo, t_hi]`` for a unit-curvature deviation profile.
+
+    ``D(t) = ((t - t0)**2 - (t1 - t)_+**2 - (t - t2)_+**2) / 2``: a parabola with vertex
+    `t0` between `t1 <= t0 <= t2` and its tangent lines outside, i.e. how far an edge
+    of curvature 1 (between tangent coordinates `t1` and `t2`, straight beyond them)
+    departs inwards from the tangent line at `t0`. Multiply by the curvature.
+    The defaults (``t1 = -2``, ``t2 = 2``) leave the parabola whole across any chord.
+    """
+    t_lo, t_hi = jnp.asarray(t_lo), jnp.asarray(t_hi)
+    # Integrated piece by piece rather than through one antiderivative: that would take
+    # differences of cubes of |t - t0|, which can be tens of pixels (a capsule side's arc
+    # starts far along the side) and would lose all float32 precision.
+    a, b = jnp.clip(t_lo, t1, t2), jnp.clip(t_hi, t1, t2)
+    parabola = ((b - t0) ** 3 - (a - t0) ** 3) / 6.0
+
+    def tangent_piece(lo, hi, tk):
+        # integral over [lo, hi] of the tangent line at tk: (tk - t0) * (t - (tk + t0) / 2)
+        return (tk - t0) * (hi - lo) * (0.5 * (lo + hi) - 0.5 * (tk + t0))
+
+    left = tangent_piece(jnp.minimum(t_lo, t1), jnp.minimum(t_hi, t1), t1)
+    right = tangent_piece(jnp.maximum(t_lo, t2), jnp.maximum(t_hi, t2), t2)
+    return parabola + left + right
+
+
+def curved_edge_coverage(
+    sd_px: Float[ArrayLike, "*shape"],
+    nx: Float[ArrayLike, "*shape"],
+    ny: Float[ArrayLike, "*shape"],
+    curvature_per_px: Float[ArrayLike, "*shape"],
+) -> Float[Array, "*shape"]:
+    """Pixel coverage by a shape whose edge is curved, to first order in the curvature.
+
+    The half-plane coverage of :func:`edge_coverage` counts the sliver between the
+    edge's tangent line (at the point nearest the pixel centre) and the curved edge.
+    That sliver is ``kappa * t**2 / 2`` thick at distance `t` along the tangent, so
+    its area inside the pixel is ``kappa / 2 * integral(t**2 dt)`` over the tangent's
+    chord through the pixel, ``kappa / 6 * (t_hi**3 - t_lo**3)``; it is subtracted.
+    This removes the ``~ w**3 / (24 R)`` px² error per boundary pixel of the plain
+    half-plane rule, leaving an error of second order in ``1 / R``.
+
+    **Arguments:**
+
+    - `sd_px`, `nx`, `ny`: as for :func:`edge_coverage`.
+    - `curvature_per_px`: curvature of the edge at its point nearest the pixel centre,
+      in 1/px (1 / radius of curvature); positive where the shape is convex there.
+
+    **Returns:**
+
+    The covered fraction, clipped to ``[0, 1]``. Meant for radii of curvature of a
+    pixel or more; below that no local approximation is accurate.
+    """
+    flat = edge_coverage(sd_px, nx, ny)
+    t_lo, t_hi = tangent_chord(sd_px, nx, ny)
+    sliver = jnp.asarray(curvature_per_px) * sliver_integral(t_lo, t_hi)
+    return jnp.clip(flat - sliver, 0.0, 1.0)

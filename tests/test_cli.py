@@ -1,0 +1,167 @@
+"""The `invglare` command: psf end to end, one-line errors, bench reports."""
+
+import json
+import math
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from invglare.cli import app
+from invglare.io.exr import read_exr
+
+EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
+runner = CliRunner()
+
+
+def invoke(*args):
+    return runner.invoke(app, [str(a) for a in args])
+
+
+def test_help_is_instant_and_does_not_import_jax():
+    code = "import sys, invglare.cli; print('jax' in sys.modules)"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "False"
+    assert invoke("--help").exit_code == 0
+
+
+def test_psf_readme_command_writes_airy_exr(tmp_path):
+    out = tmp_path / "psf.exr"
+    png = tmp_path / "psf.png"
+    result = invoke(
+        "psf",
+        EXAMPLES / "circle.toml",
+        "--npix",
+        128,
+        "--pixel-scale-deg",
+        0.0004,
+        "--wavelengths-nm",
+        550,
+        "--out",
+        out,
+        "--png",
+        png,
+    )
+    assert result.exit_code == 0, result.output
+    img = read_exr(out)
+    assert img.channels == ("Y",)
+    assert img.data.shape == (128, 128)
+    assert img.pixel_scale_deg == pytest.approx(0.0004)
+    assert img.wavelengths_nm == (550.0,)
+    assert img.config["model"]["shapes"][0]["kind"] == "disk"
+    assert img.config["model"]["method"] == "mft"
+    # Airy: the peak at the centre, first dark ring at 1.22 lambda / D (= 19.2 px here).
+    assert np.unravel_index(np.argmax(img.data), img.data.shape) == (64, 64)
+    ring_px = 1.21967 * math.degrees(550e-6 / 4.0) / 0.0004
+    row = img.data[64, 64:]
+    k = int(np.argmin(row[10:30])) + 10
+    assert abs(k - ring_px) <= 1.0
+    assert png.exists() and png.stat().st_size > 0
+
+
+def test_psf_spectral_example_writes_rgb(tmp_path):
+    out = tmp_path / "hex.exr"
+    result = invoke(
+        "psf",
+        EXAMPLES / "hexagon_spectral.toml",
+        "--npix",
+        64,
+        "--wavelengths-nm",
+        "450:650:4",
+        "--out",
+        out,
+    )
+    assert result.exit_code == 0, result.output
+    # Saturated spectral colours lie outside sRGB: small negative values are expected.
+    img = read_exr(out, allow_negative=True)
+    assert img.channels == ("R", "G", "B")
+    assert img.wavelengths_nm == (450.0, 500.0, 550.0, 600.0)
+    assert img.data.min() > -0.01 * img.data.max()
+
+
+def test_psf_fresnel_example_runs_on_fft_path(tmp_path):
+    out = tmp_path / "lashes.exr"
+    result = invoke("psf", EXAMPLES / "pupil_with_lashes.toml", "--npix", 128, "--out", out)
+    assert result.exit_code == 0, result.output
+    img = read_exr(out)
+    assert img.config["model"]["method"] == "fft"
+    assert img.config["model"]["propagation"] == "fresnel"
+
+
+@pytest.mark.parametrize(
+    ("toml", "args", "pattern"),
+    [
+        (
+            '[model]\nkind="aperture"\nfocal_length_mm=17\n[[model.shapes]]\nkind="disk"\ndiameter=4\n',
+            [],
+            "unknown key 'diameter'",
+        ),
+        (
+            '[model]\nkind="aperture"\nfocal_length_mm=17\n[[model.shapes]]\nkind="disk"\ndiameter_mm=4\n'
+            "[outptu]\nnpix=64\n",
+            [],
+            r"unknown section \[outptu\]",
+        ),
+        (
+            '[model]\nkind="aperture"\nfocal_length_mm="17"\n[[model.shapes]]\nkind="disk"\n'
+            "diameter_mm=4\n",
+            [],
+            "model.focal_length_mm must be a number",
+        ),
+        (
+            '[model]\nkind="aperture"\nfocal_length_mm=17\n[[model.shapes]]\nkind="disk"\n'
+            "diameter_mm=-4\n",
+            [],
+            "diameter_mm",
+        ),
+        (
+            '[model]\nkind="aperture"\nfocal_length_mm=17\n[[model.shapes]]\nkind="disk"\n'
+            "diameter_mm=4\n",
+            ["--wavelengths-nm", "5.5e-7"],
+            "metres",
+        ),
+        ('[model]\nkind="lens"\n', [], "model.kind = 'lens' is unknown"),
+        ("[model\n", [], "not valid TOML"),
+    ],
+)
+def test_psf_bad_config_is_one_line_error(tmp_path, toml, args, pattern):
+    cfg = tmp_path / "bad.toml"
+    cfg.write_text(toml)
+    out = tmp_path / "x.exr"
+    result = invoke("psf", cfg, "--out", out, *args)
+    assert result.exit_code == 2
+    lines = [line for line in result.output.splitlines() if line.strip()]
+    assert len(lines) == 1 and lines[0].startswith("invglare: error:"), result.output
+    import re
+
+    assert re.search(pattern, lines[0]), lines[0]
+    assert not out.exists()
+
+
+def test_psf_missing_config_file(tmp_path):
+    result = invoke("psf", tmp_path / "nope.toml")
+    assert result.exit_code == 2
+    assert "does not exist" in result.output
+
+
+def test_bench_writes_records_with_ratios(tmp_path):
+    result = invoke("bench", "psf_mono", "--sizes", "32", "--repeats", "3", "--out-dir", tmp_path)
+    assert result.exit_code == 0, result.output
+    records = json.loads((tmp_path / "bench.json").read_text())
+    names = {r["case"] for r in records}
+    assert {"fft_floor_scipy", "psf_mono", "psf_mono_grad"} <= names
+    for r in records:
+        assert {"case", "size", "median_ms", "floor_ms", "ratio"} <= r.keys()
+        assert r["median_ms"] > 0 and r["ratio"] > 0
+    grad = next(r for r in records if r["case"] == "psf_mono_grad")
+    assert grad["vs_forward"] > 0
+    assert "| psf_mono | 32 |" in (tmp_path / "bench.md").read_text()
+
+
+def test_bench_unknown_case_is_an_error(tmp_path):
+    result = invoke("bench", "no_such_case", "--sizes", "32", "--out-dir", tmp_path)
+    assert result.exit_code == 2
+    assert "no benchmark case matches" in result.output
