@@ -39,7 +39,7 @@ def pupil_128px():
             window_mm=4.0 * 136 / 128,
         )
         t = model.transmission()
-        coords = model.grid.coords_mm()
+        coords = model.propagator.grid.coords_mm()
         yield model, t, coords
 
 
@@ -95,14 +95,14 @@ def test_model_psf_is_unit_energy_airy_in_2d(pupil_128px):
     model, _, _ = pupil_128px
     with x64():
         psf = np.asarray(model())
-        theta = np.asarray(model.output.coords_rad())
+        theta = np.asarray(model.propagator.output.coords_rad())
         lam_over_d = 550e-6 / 4.0
         rr = np.hypot(theta[:, None], theta[None, :]) / lam_over_d
         # Peak energy per pixel: (sum t d^2)^2 / (sum t^2 d^2) * (dtheta / lambda)^2.
         t = np.asarray(model.transmission())
-        pitch2 = float(model.grid.pitch_mm) ** 2
+        pitch2 = float(model.propagator.grid.pitch_mm) ** 2
         peak = (t.sum() * pitch2) ** 2 / ((t**2).sum() * pitch2)
-        peak *= (float(model.output.pixel_scale_rad) / 550e-6) ** 2
+        peak *= (float(model.propagator.output.pixel_scale_rad) / 550e-6) ** 2
         np.testing.assert_allclose(psf, peak * airy(rr), atol=2e-4 * peak)
         assert np.unravel_index(np.argmax(psf), psf.shape) == (32, 32)
 
@@ -112,14 +112,14 @@ def test_fft_and_mft_methods_agree_where_samplings_coincide():
     fast = AperturePSF.build(
         ap, focal_length_mm=17.0, wavelengths_nm=550.0, npix=128, aperture_npix=64
     )
-    assert fast.method == "fft"
+    assert fast.propagator.method == "fft"
     exact = AperturePSF.build(
         ap,
         focal_length_mm=17.0,
         wavelengths_nm=550.0,
         npix=128,
         aperture_npix=64,
-        pixel_scale_deg=float(fast.output.pixel_scale_deg),
+        pixel_scale_deg=float(fast.propagator.output.pixel_scale_deg),
         method="mft",
     )
     auto = AperturePSF.build(
@@ -128,9 +128,9 @@ def test_fft_and_mft_methods_agree_where_samplings_coincide():
         wavelengths_nm=550.0,
         npix=128,
         aperture_npix=64,
-        pixel_scale_deg=float(fast.output.pixel_scale_deg),
+        pixel_scale_deg=float(fast.propagator.output.pixel_scale_deg),
     )
-    assert exact.method == "mft" and auto.method == "fft"
+    assert exact.propagator.method == "mft" and auto.propagator.method == "fft"
     a, b = np.asarray(fast()), np.asarray(exact())
     np.testing.assert_allclose(a, b, atol=2e-6 * a.max())
     assert a.sum() == pytest.approx(1.0, abs=1e-5)
@@ -179,8 +179,8 @@ def _loss(model, leaf_getter, weights):
     ("name", "getter", "x0", "eps"),
     [
         ("diameter", lambda m: m.aperture.shapes[0].diameter_mm, 2.013, 1e-6),
-        ("wavelength", lambda m: m.wavelengths_nm, 551.3, 1e-3),
-        ("focal length", lambda m: m.focal_length_mm, 123.4, 1e-4),
+        ("wavelength", lambda m: m.spectrum.wavelengths_nm, 551.3, 1e-3),
+        ("focal length", lambda m: m.propagator.focal_length_mm, 123.4, 1e-4),
         ("lash thickness", lambda m: m.aperture.shapes[1].thickness_mm, 0.0513, 1e-7),
     ],
 )
@@ -233,7 +233,7 @@ def test_model_jit_and_vmap_over_diameters_match_loop():
         (dict(wavelengths_nm=5.5e-7), PhysicsRangeError, "metres"),
         (dict(focal_length_mm=-1.0), PhysicsRangeError, "focal_length_mm must be finite and > 0"),
         (dict(propagation="rayleigh"), ConfigError, "'rayleigh' is not one of"),
-        (dict(wavelengths_nm=[450.0, 550.0]), ConfigError, "spectral = 'scaled'"),
+        (dict(wavelengths_nm=[450.0, 550.0], method="fft"), ConfigError, "spectral = 'scaled'"),
         (dict(npix=4), PhysicsRangeError, "npix must be an integer >= 8, got 4"),
     ],
 )
@@ -242,3 +242,19 @@ def test_build_rejects_bad_settings(kwargs, error, pattern):
     base.update(kwargs)
     with pytest.raises(error, match=pattern):
         AperturePSF.build(Aperture((Disk(4.0),)), **base)
+
+
+def test_auto_method_takes_mft_for_exact_spectral_at_fft_scale():
+    """Several wavelengths, no pixel scale: the FFT scale of the first, evaluated by MFT."""
+    model = AperturePSF.build(
+        Aperture((Disk(4.0),)),
+        focal_length_mm=17.0,
+        wavelengths_nm=[500.0, 600.0],
+        npix=64,
+        aperture_npix=64,
+    )
+    assert model.propagator.method == "mft"
+    assert float(model.propagator.output.pixel_scale_deg) == pytest.approx(
+        math.degrees(500e-6 / (128 * float(model.propagator.grid.pitch_mm))), rel=1e-6
+    )
+    assert model().shape == (64, 64, 3)

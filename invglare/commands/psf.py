@@ -43,15 +43,16 @@ def run_psf(
     psf = np.asarray(jax.jit(lambda m: m())(model))
     if not np.all(np.isfinite(psf)):
         raise NumericalError(f"the PSF of {config_path} has non-finite values")
-    scale = float(model.output.pixel_scale_deg)
+    prop = model.propagator
+    scale = float(prop.output.pixel_scale_deg)
     energy = float(psf.sum() if psf.ndim == 2 else _luminance(psf).sum())
     write_exr(
         out,
         psf,
         pixel_scale_deg=scale,
-        wavelengths_nm=[float(w) for w in model.wavelengths_nm],
+        wavelengths_nm=[float(w) for w in model.spectrum.wavelengths_nm],
         config=model_to_config(model),
-        attrs={"psfNormalisation": NORMALISATION, "propagationMethod": model.method},
+        attrs={"psfNormalisation": NORMALISATION, "propagationMethod": prop.method},
         half=half,
     )
     channels = "Y" if psf.ndim == 2 else "R,G,B"
@@ -62,8 +63,8 @@ def run_psf(
         psf.shape[1],
         channels,
         scale,
-        model.propagation,
-        model.method.upper(),
+        prop.propagation,
+        prop.method.upper(),
         energy,
     )
     if png is not None:

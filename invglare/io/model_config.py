@@ -35,8 +35,9 @@ from typing import Any
 from invglare.aperture import Aperture, shape_from_config, shape_to_config
 from invglare.errors import ConfigError
 from invglare.io.config import Section, check_sections
-from invglare.models.aperture_psf import METHODS, PROPAGATIONS, SPECTRAL_METHODS, AperturePSF
-from invglare.optics.spectral import parse_wavelengths
+from invglare.models.aperture_psf import AperturePSF
+from invglare.optics.propagator import METHODS, PROPAGATIONS
+from invglare.optics.spectral import SPECTRAL_METHODS, parse_wavelengths
 
 MODEL_KINDS = ("aperture",)
 SECTIONS = ("model", "output", "spectrum")
@@ -106,25 +107,26 @@ def build_model(
 
 def model_to_config(model: AperturePSF) -> dict[str, Any]:
     """The config of a built model with every choice made explicit (for file headers)."""
+    prop, spec = model.propagator, model.spectrum
     return {
         "model": {
             "kind": "aperture",
-            "focal_length_mm": float(model.focal_length_mm),
-            "propagation": model.propagation,
-            "aperture_npix": model.grid.npix,
-            "window_mm": float(model.grid.width_mm),
-            "method": model.method,
+            "focal_length_mm": float(prop.focal_length_mm),
+            "propagation": prop.propagation,
+            "aperture_npix": prop.grid.npix,
+            "window_mm": float(prop.grid.width_mm),
+            "method": prop.method,
             "shapes": [shape_to_config(s) for s in model.aperture.shapes],
         },
         "output": {
-            "npix": model.output.npix,
-            "pixel_scale_deg": float(model.output.pixel_scale_deg),
+            "npix": prop.output.npix,
+            "pixel_scale_deg": float(prop.output.pixel_scale_deg),
         },
         "spectrum": {
-            "wavelengths_nm": [float(w) for w in model.wavelengths_nm],
-            "spectral": model.spectral,
-            "reference_wavelength_nm": model.reference_wavelength_nm,
-            "illuminant": model.illuminant,
-            "colourspace": model.colourspace,
+            "wavelengths_nm": [float(w) for w in spec.wavelengths_nm],
+            "spectral": spec.spectral,
+            "reference_wavelength_nm": spec.reference_wavelength_nm,
+            "illuminant": spec.illuminant,
+            "colourspace": spec.colourspace,
         },
     }

@@ -1,11 +1,12 @@
 """The PSF of a static aperture: the simplest forward model, and the base of the others.
 
 An :class:`AperturePSF` rasterises an :class:`~invglare.aperture.Aperture`,
-propagates it to the far field (Fraunhofer) or applies the Fresnel term of the
-temporal-glare paper first (eq. 3), and returns
+propagates it with a :class:`~invglare.optics.propagator.Propagator`
+(Fraunhofer, or with the Fresnel term of eq. 3 of the temporal-glare paper) and
+integrates over its :class:`~invglare.optics.spectral.Spectrum`, returning
 
-* a monochrome PSF ``(npix, npix)`` when it has one wavelength, or
-* a linear RGB PSF ``(npix, npix, 3)`` integrated over its wavelengths,
+* a monochrome PSF ``(npix, npix)`` for one wavelength, or
+* a linear RGB PSF ``(npix, npix, 3)`` for several,
 
 normalised as in :mod:`invglare.optics.fraunhofer` (fraction of the transmitted
 power per pixel; for RGB the luminance Y carries that normalisation).
@@ -13,61 +14,84 @@ power per pixel; for RGB the luminance Y carries that normalisation).
 
 from __future__ import annotations
 
-import math
 from collections.abc import Sequence
 
 import equinox as eqx
-import jax
-import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
 from invglare.aperture import Aperture
 from invglare.errors import ConfigError, PhysicsRangeError
-from invglare.optics.fraunhofer import fraunhofer_mft, intensity_fft
-from invglare.optics.fresnel import fresnel_phase
-from invglare.optics.sampling import (
-    AngularGrid,
-    ApertureGrid,
-    check_positive,
-    check_wavelengths_nm,
-)
-from invglare.optics.spectral import psf_to_xyz, scaled_copies_xyz, spectral_weights, xyz_to_rgb
-
-PROPAGATIONS = ("fraunhofer", "fresnel")
-METHODS = ("auto", "fft", "mft")
-SPECTRAL_METHODS = ("exact", "scaled")
-
-#: Largest FFT the automatic method choice will pick before falling back to the MFT.
-MAX_AUTO_FFT_NPIX = 4096
+from invglare.optics.propagator import Propagator
+from invglare.optics.spectral import Spectrum
 
 
-def _choose(name: str, value: str, valid: Sequence[str]) -> str:
-    if value not in valid:
-        raise ConfigError(f"{name} = {value!r} is not one of {', '.join(valid)}")
-    return value
+def default_window_mm(extent_mm: float, aperture_npix: int) -> float:
+    """An aperture window holding `extent_mm` with two empty pixels on each side."""
+    return extent_mm * aperture_npix / (aperture_npix - 4)
+
+
+def build_propagator(
+    extent_mm: float,
+    spectrum: Spectrum,
+    *,
+    focal_length_mm: float,
+    npix: int,
+    pixel_scale_deg: float | None,
+    aperture_npix: int,
+    window_mm: float | None,
+    propagation: str,
+    method: str,
+) -> Propagator:
+    """A propagator whose window holds an aperture of `extent_mm` and suits the spectrum."""
+    if window_mm is None:
+        window_mm = default_window_mm(extent_mm, aperture_npix)
+    if extent_mm > window_mm * (1 + 1e-6):
+        raise PhysicsRangeError(
+            f"the aperture ({extent_mm:g} mm across) does not fit in window_mm = {window_mm:g}"
+        )
+    computed = spectrum.computed_wavelengths_nm
+    if method == "fft" and spectrum.is_spectral and spectrum.spectral == "exact":
+        raise ConfigError(
+            "a spectral PSF on the FFT path needs spectral = 'scaled'; for exact "
+            "per-wavelength transforms set pixel_scale_deg and method = 'mft'"
+        )
+    propagator = Propagator.build(
+        window_mm=window_mm,
+        focal_length_mm=focal_length_mm,
+        fft_wavelength_nm=computed[0],
+        shortest_wavelength_nm=min(computed),
+        npix=npix,
+        pixel_scale_deg=pixel_scale_deg,
+        aperture_npix=aperture_npix,
+        propagation=propagation,
+        method=method,
+    )
+    if propagator.method == "fft" and len(computed) > 1:
+        # "auto" chose the FFT for the first wavelength; the others need other scales.
+        return build_propagator(
+            extent_mm,
+            spectrum,
+            focal_length_mm=focal_length_mm,
+            npix=npix,
+            pixel_scale_deg=float(propagator.output.pixel_scale_deg),
+            aperture_npix=aperture_npix,
+            window_mm=window_mm,
+            propagation=propagation,
+            method="mft",
+        )
+    return propagator
 
 
 class AperturePSF(eqx.Module):
-    """PSF of an aperture at a set of wavelengths, on a chosen angular output grid.
+    """PSF of an aperture for a spectrum, on the propagator's angular output grid.
 
-    Build one with :meth:`build`, which picks the sampling and the propagation
-    method; the constructor takes every field as is.
+    Build one with :meth:`build`, which picks the sampling and the method.
     """
 
     aperture: Aperture
-    grid: ApertureGrid
-    output: AngularGrid
-    focal_length_mm: Float[Array, ""] = eqx.field(converter=jnp.asarray)
-    wavelengths_nm: Float[Array, " w"] = eqx.field(converter=jnp.asarray)
-    weights_xyz: Float[Array, "w 3"] = eqx.field(converter=jnp.asarray)
-    propagation: str = eqx.field(static=True, default="fraunhofer")
-    method: str = eqx.field(static=True, default="mft")
-    fft_npix: int = eqx.field(static=True, default=0)
-    spectral: str = eqx.field(static=True, default="exact")
-    reference_wavelength_nm: float = eqx.field(static=True, default=575.0)
-    colourspace: str = eqx.field(static=True, default="sRGB")
-    illuminant: str = eqx.field(static=True, default="E")
+    propagator: Propagator
+    spectrum: Spectrum
 
     @classmethod
     def build(
@@ -75,7 +99,7 @@ class AperturePSF(eqx.Module):
         aperture: Aperture,
         *,
         focal_length_mm: float,
-        wavelengths_nm: Sequence[float] | float = 550.0,
+        wavelengths_nm: Sequence[float] | float | str = 550.0,
         npix: int = 512,
         pixel_scale_deg: float | None = None,
         aperture_npix: int = 256,
@@ -104,116 +128,40 @@ class AperturePSF(eqx.Module):
           (copies of the `reference_wavelength_nm` PSF, Ritschel et al.).
         - `illuminant`, `colourspace`: colour-science names for the light's
           spectrum and the linear RGB space of a spectral PSF.
-        """
-        _choose("propagation", propagation, PROPAGATIONS)
-        _choose("method", method, METHODS)
-        _choose("spectral", spectral, SPECTRAL_METHODS)
-        lams = np.atleast_1d(np.asarray(wavelengths_nm, dtype=float))
-        check_wavelengths_nm(lams)
-        check_wavelengths_nm(reference_wavelength_nm)
-        check_positive("focal_length_mm", focal_length_mm, "mm")
-        if int(npix) != npix or npix < 8:
-            raise PhysicsRangeError(f"npix must be an integer >= 8, got {npix}")
-        if int(aperture_npix) != aperture_npix or aperture_npix < 8:
-            raise PhysicsRangeError(f"aperture_npix must be an integer >= 8, got {aperture_npix}")
-        extent = aperture.extent_mm()
-        if window_mm is None:
-            window_mm = extent * aperture_npix / (aperture_npix - 4)
-        check_positive("window_mm", window_mm, "mm")
-        if extent > window_mm * (1 + 1e-6):
-            raise PhysicsRangeError(
-                f"the aperture ({extent:g} mm across) does not fit in window_mm = {window_mm:g}"
-            )
-        grid = ApertureGrid.from_width(int(aperture_npix), window_mm)
-        pitch = window_mm / aperture_npix
-        # The FFT path computes one wavelength; several need the scaled-copies approximation.
-        fft_wavelength = lams[0] if lams.size == 1 else reference_wavelength_nm
 
-        if pixel_scale_deg is None:
-            if method == "mft":
-                raise ConfigError("method = 'mft' needs pixel_scale_deg")
-            fft_npix = max(int(npix), 2 * int(aperture_npix))
-            fft_npix += fft_npix % 2
-            pixel_scale_deg = math.degrees(fft_wavelength * 1e-6 / (fft_npix * pitch))
-            method = "fft"
-        else:
-            check_positive("pixel_scale_deg", pixel_scale_deg, "deg")
-            ideal = fft_wavelength * 1e-6 / (pitch * math.radians(pixel_scale_deg))
-            fft_npix = round(ideal)
-            fits = (
-                abs(ideal - fft_npix) < 1e-6 * ideal
-                and fft_npix >= aperture_npix
-                and fft_npix >= npix
-            )
-            if method == "auto":
-                method = "fft" if fits and fft_npix <= MAX_AUTO_FFT_NPIX else "mft"
-            elif method == "fft" and not fits:
-                raise ConfigError(
-                    f"method = 'fft' gives pixels of lambda / (M * pitch); pixel_scale_deg = "
-                    f"{pixel_scale_deg:g} needs M = {ideal:.3f}, not an integer >= npix "
-                    "(drop pixel_scale_deg, or use method = 'mft')"
-                )
-            if method == "mft":
-                fft_npix = 0
-        if method == "fft" and lams.size > 1 and spectral == "exact":
-            raise ConfigError(
-                "a spectral PSF on the FFT path needs spectral = 'scaled'; for exact "
-                "per-wavelength transforms set pixel_scale_deg and method = 'mft'"
-            )
-        output = AngularGrid(int(npix), pixel_scale_deg)
-        shortest = float(lams.min()) if spectral == "exact" else float(fft_wavelength)
-        half_field = math.radians(float(output.half_field_deg))
-        if method == "mft" and half_field / (shortest * 1e-6) > 0.5 / pitch:
-            supported = math.degrees(0.5 / pitch * shortest * 1e-6)
-            raise PhysicsRangeError(
-                f"the output field reaches {float(output.half_field_deg):.4g} deg but the aperture "
-                f"sampling (pitch {pitch * 1e3:.3g} um) supports only {supported:.4g} deg at "
-                f"{shortest:g} nm without aliasing; raise aperture_npix or lower npix / "
-                "pixel_scale_deg"
-            )
-        weights = spectral_weights(lams, illuminant=illuminant)
-        return cls(
-            aperture=aperture,
-            grid=grid,
-            output=output,
+        **Example:**
+
+        ```python
+        model = AperturePSF.build(Aperture((Disk(4.0),)), focal_length_mm=17.0, npix=256)
+        psf = model()  # Airy pattern at 550 nm, FFT pixel scale
+        ```
+        """
+        spectrum = Spectrum.build(
+            np.atleast_1d(np.asarray(wavelengths_nm, dtype=float))
+            if not isinstance(wavelengths_nm, str)
+            else wavelengths_nm,
+            spectral=spectral,
+            reference_wavelength_nm=reference_wavelength_nm,
+            illuminant=illuminant,
+            colourspace=colourspace,
+        )
+        propagator = build_propagator(
+            aperture.extent_mm(),
+            spectrum,
             focal_length_mm=focal_length_mm,
-            wavelengths_nm=lams,
-            weights_xyz=weights,
+            npix=npix,
+            pixel_scale_deg=pixel_scale_deg,
+            aperture_npix=aperture_npix,
+            window_mm=window_mm,
             propagation=propagation,
             method=method,
-            fft_npix=fft_npix,
-            spectral=spectral,
-            reference_wavelength_nm=float(reference_wavelength_nm),
-            colourspace=colourspace,
-            illuminant=illuminant,
         )
-
-    @property
-    def is_spectral(self) -> bool:
-        return self.wavelengths_nm.shape[0] > 1
+        return cls(aperture, propagator, spectrum)
 
     def transmission(self) -> Float[Array, "n n"]:
-        """The rasterised aperture transmission on :attr:`grid`."""
-        return self.aperture.transmission(self.grid)
-
-    def monochrome(self, wavelength_nm) -> Float[Array, "npix npix"]:
-        """Unit-energy PSF at one wavelength (on the FFT path: at the FFT's own scale)."""
-        field = self.transmission()
-        if self.propagation == "fresnel":
-            field = field * fresnel_phase(self.grid, wavelength_nm, self.focal_length_mm)
-        if self.method == "fft":
-            return intensity_fft(field, self.fft_npix, self.output.npix)
-        return fraunhofer_mft(field, self.grid, wavelength_nm, self.output)
+        """The rasterised aperture transmission on the propagator's grid."""
+        return self.aperture.transmission(self.propagator.grid)
 
     def __call__(self) -> Float[Array, "npix npix"] | Float[Array, "npix npix 3"]:
-        if not self.is_spectral:
-            return self.monochrome(self.wavelengths_nm[0])
-        if self.spectral == "scaled":
-            reference = self.monochrome(jnp.asarray(self.reference_wavelength_nm))
-            xyz = scaled_copies_xyz(
-                reference, self.reference_wavelength_nm, self.wavelengths_nm, self.weights_xyz
-            )
-        else:
-            psfs = jax.vmap(self.monochrome)(self.wavelengths_nm)
-            xyz = psf_to_xyz(psfs, self.weights_xyz)
-        return xyz_to_rgb(xyz, self.colourspace)
+        field = self.transmission()
+        return self.spectrum.integrate(lambda lam: self.propagator(field, lam))

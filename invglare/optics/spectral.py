@@ -20,6 +20,9 @@ it takes about a second to import); everything that touches a PSF is pure JAX.
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -442,3 +445,78 @@ def spectral_psf_rgb(
     wl = parse_wavelengths(wavelengths)
     weights = spectral_weights(wl, illuminant, observer)
     return xyz_to_rgb(scaled_copies_xyz(psf_ref, ref_wavelength_nm, wl, weights), colourspace)
+
+
+SPECTRAL_METHODS = ("exact", "scaled")
+
+
+class Spectrum(eqx.Module):
+    """The light a PSF is computed for: one wavelength (mono) or a weighted set (RGB).
+
+    :meth:`integrate` turns a function ``wavelength_nm -> unit-energy PSF`` into the
+    model's output: the PSF itself for one wavelength; otherwise linear RGB in
+    `colourspace`, either by evaluating every wavelength (``"exact"``) or from
+    scaled copies of the `reference_wavelength_nm` PSF (``"scaled"``).
+    """
+
+    wavelengths_nm: Float[Array, " w"] = eqx.field(converter=jnp.asarray)
+    weights_xyz: Float[Array, "w 3"] = eqx.field(converter=jnp.asarray)
+    spectral: str = eqx.field(static=True, default="exact")
+    reference_wavelength_nm: float = eqx.field(static=True, default=DEFAULT_REF_WAVELENGTH_NM)
+    colourspace: str = eqx.field(static=True, default="sRGB")
+    illuminant: str = eqx.field(static=True, default="E")
+
+    @classmethod
+    def build(
+        cls,
+        wavelengths_nm=550.0,
+        *,
+        spectral: str = "exact",
+        reference_wavelength_nm: float = DEFAULT_REF_WAVELENGTH_NM,
+        illuminant: str = "E",
+        colourspace: str = "sRGB",
+    ) -> Spectrum:
+        """Validate the choices and build the XYZ weight table (colour-science)."""
+        if spectral not in SPECTRAL_METHODS:
+            raise ConfigError(
+                f"spectral = {spectral!r} is not one of {', '.join(SPECTRAL_METHODS)}"
+            )
+        wl = parse_wavelengths(wavelengths_nm)
+        check_wavelengths_nm(reference_wavelength_nm)
+        _xyz_to_rgb_matrix(colourspace)  # fail early on an unknown colourspace
+        return cls(
+            wavelengths_nm=wl,
+            weights_xyz=spectral_weights(wl, illuminant),
+            spectral=spectral,
+            reference_wavelength_nm=float(reference_wavelength_nm),
+            colourspace=colourspace,
+            illuminant=illuminant,
+        )
+
+    @property
+    def is_spectral(self) -> bool:
+        return self.wavelengths_nm.shape[0] > 1
+
+    @property
+    def computed_wavelengths_nm(self) -> tuple[float, ...]:
+        """The wavelengths at which a PSF is actually evaluated (concrete values)."""
+        if not self.is_spectral:
+            return (float(self.wavelengths_nm[0]),)
+        if self.spectral == "scaled":
+            return (self.reference_wavelength_nm,)
+        return tuple(float(w) for w in self.wavelengths_nm)
+
+    def integrate(
+        self, monochrome: Callable[[Array], Float[Array, "h w"]]
+    ) -> Float[Array, "h w"] | Float[Array, "h w 3"]:
+        """Mono PSF, or linear RGB integrated over the spectrum (Y has unit energy)."""
+        if not self.is_spectral:
+            return monochrome(self.wavelengths_nm[0])
+        if self.spectral == "scaled":
+            reference = monochrome(jnp.asarray(self.reference_wavelength_nm))
+            xyz = scaled_copies_xyz(
+                reference, self.reference_wavelength_nm, self.wavelengths_nm, self.weights_xyz
+            )
+        else:
+            xyz = psf_to_xyz(jax.vmap(monochrome)(self.wavelengths_nm), self.weights_xyz)
+        return xyz_to_rgb(xyz, self.colourspace)
