@@ -10,6 +10,12 @@ with ``U`` the aperture's continuous Fourier transform at frequency
 pitch. By Parseval the sum over an unbounded output plane is exactly 1 (an FFT
 covers that whole plane); a finite MFT field holds the encircled fraction.
 Divide by the pixel solid angle ``dtheta^2`` to get a PSF in sr^-1.
+
+The power is that of the *raster*, ``sum |t|^2``: an anti-aliased edge pixel of
+coverage ``c`` transmits amplitude ``c`` but counts ``c^2``. The difference from
+the geometric area is the light an ideal sharp edge diffracts beyond the grid's
+Nyquist angle ``lambda / (2 pitch)``, which no sampled model represents; it
+shrinks as the raster gets finer (0.5 % for a pupil 128 px across).
 """
 
 from __future__ import annotations
