@@ -52,6 +52,8 @@ def _main(
 ) -> None:
     level = logging.ERROR if quiet else (logging.DEBUG if verbose > 1 else logging.INFO)
     logging.basicConfig(level=level, format="%(message)s", stream=sys.stderr)
+    # JAX reports every accelerator backend it did not find; that is noise on a CPU machine.
+    logging.getLogger("jax._src.xla_bridge").setLevel(logging.ERROR)
 
 
 @app.command()
@@ -82,6 +84,53 @@ def psf(
     from invglare.commands.psf import run_psf
 
     run_psf(config, out, npix, pixel_scale_deg, wavelengths_nm, half, png)
+
+
+@app.command()
+@_reports_user_errors
+def render(
+    scene: Annotated[Path, typer.Argument(help="Linear HDR scene (EXR, with pixelScaleDeg).")],
+    model: Annotated[Path, typer.Option("--model", "-m", help="Model config (TOML).")],
+    out: Annotated[Path, typer.Option("--out", "-o", help="Output .exr (linear) or .png.")] = Path(
+        "glare.png"
+    ),
+    mode: Annotated[
+        str, typer.Option(help="convolve (whole frame) or billboard (bright pixels only).")
+    ] = "convolve",
+    threshold: Annotated[
+        float | None,
+        typer.Option(help="Billboard threshold in the scene's units (default: max / 100)."),
+    ] = None,
+    max_bright: Annotated[int, typer.Option(help="Most billboards.")] = 256,
+    tonemap: Annotated[str, typer.Option(help="PNG tone map: reinhard, kakimoto, gamma, srgb.")] = (
+        "reinhard"
+    ),
+    exposure: Annotated[float, typer.Option(help="Exposure for the gamma / srgb maps.")] = 1.0,
+    pixel_scale_deg: Annotated[
+        float | None,
+        typer.Option("--pixel-scale-deg", help="Scene pixel scale if the EXR lacks one."),
+    ] = None,
+) -> None:
+    """Render a model's glare onto an HDR scene: EXR stays linear, PNG is tone-mapped."""
+    from invglare.commands.render import run_render
+
+    run_render(scene, model, out, mode, threshold, max_bright, tonemap, exposure, pixel_scale_deg)
+
+
+@app.command()
+@_reports_user_errors
+def scene(
+    name: Annotated[
+        str, typer.Argument(help="street_lights_at_night, sunlit_specular_highlight, candle.")
+    ],
+    out: Annotated[Path, typer.Option("--out", "-o", help="Output EXR.")] = Path("scene.exr"),
+    npix: Annotated[int, typer.Option(help="Image size in pixels.")] = 256,
+    seed: Annotated[int, typer.Option(help="Random seed of the procedural scene.")] = 0,
+) -> None:
+    """Write one of the bundled procedural HDR scenes (linear cd/m^2) as EXR."""
+    from invglare.commands.render import run_scene
+
+    run_scene(name, out, npix, seed)
 
 
 @app.command()

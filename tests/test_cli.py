@@ -83,12 +83,49 @@ def test_psf_spectral_example_writes_rgb(tmp_path):
 
 
 def test_psf_fresnel_example_runs_on_fft_path(tmp_path):
-    out = tmp_path / "lashes.exr"
-    result = invoke("psf", EXAMPLES / "pupil_with_lashes.toml", "--npix", 128, "--out", out)
+    out = tmp_path / "fresnel.exr"
+    result = invoke("psf", EXAMPLES / "pupil_fresnel.toml", "--npix", 128, "--out", out)
     assert result.exit_code == 0, result.output
     img = read_exr(out)
     assert img.config["model"]["method"] == "fft"
     assert img.config["model"]["propagation"] == "fresnel"
+
+
+def test_psf_refuses_an_aliased_fresnel_phase(tmp_path):
+    cfg = tmp_path / "aliased.toml"
+    text = (EXAMPLES / "pupil_fresnel.toml").read_text().replace("aperture_npix = 512", "")
+    cfg.write_text(text)
+    result = invoke("psf", cfg, "--out", tmp_path / "x.exr")
+    assert result.exit_code == 2
+    assert "Fresnel phase (eq. 3) aliases" in result.output
+    assert "aperture_npix >= " in result.output
+
+
+def test_scene_and_render_commands(tmp_path):
+    scene = tmp_path / "street.exr"
+    assert invoke("scene", "street_lights_at_night", "--npix", 64, "--out", scene).exit_code == 0
+    for mode, out in (("convolve", "a.exr"), ("billboard", "b.png")):
+        result = invoke(
+            "render",
+            scene,
+            "--model",
+            EXAMPLES / "pupil_with_lashes.toml",
+            "--mode",
+            mode,
+            "--max-bright",
+            8,
+            "--out",
+            tmp_path / out,
+        )
+        assert result.exit_code == 0, result.output
+    original = read_exr(scene).data
+    glare = read_exr(tmp_path / "a.exr").data
+    # Convolution with a unit-energy PSF moves light around but does not create it.
+    assert glare.sum() == pytest.approx(original.sum(), rel=0.02)
+    assert glare.max() < original.max()
+    bad = invoke("render", scene, "--model", EXAMPLES / "circle.toml", "--out", tmp_path / "x.jpg")
+    assert bad.exit_code == 2 and ".exr or .png" in bad.output
+    assert invoke("scene", "moon", "--out", tmp_path / "m.exr").exit_code == 2
 
 
 @pytest.mark.parametrize(

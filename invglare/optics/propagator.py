@@ -111,6 +111,19 @@ class Propagator(eqx.Module):
             if method == "mft":
                 fft_npix = 0
         output = AngularGrid(npix, pixel_scale_deg)
+        if propagation == "fresnel":
+            # The quadratic phase must be sampled: its local frequency r / (lambda d) at the
+            # window's edge has to stay under Nyquist, or the "PSF" is aliasing noise.
+            edge_mm = window_mm / 2
+            chirp = edge_mm / (shortest_wavelength_nm * 1e-6 * focal_length_mm)
+            if chirp > 0.5 / pitch:
+                needed = math.ceil(2 * chirp * window_mm)
+                raise PhysicsRangeError(
+                    f"the Fresnel phase (eq. 3) aliases: at {edge_mm:g} mm from the axis it "
+                    f"oscillates at {chirp:.4g} cycles/mm, above the {0.5 / pitch:.4g} the "
+                    f"aperture raster resolves; use aperture_npix >= {needed}, a longer "
+                    "focal_length_mm, or propagation = 'fraunhofer'"
+                )
         if method == "mft":
             half_field = math.radians(float(output.half_field_deg))
             if half_field / (shortest_wavelength_nm * 1e-6) > 0.5 / pitch:
