@@ -94,6 +94,37 @@ def _psf_gradient(n: int):
     return lambda: grad(d0, model)
 
 
+def _convolve_setup(n: int):
+    """An N x N RGB frame and an (N/4 + 1)^2 RGB PSF."""
+    import jax.numpy as jnp
+
+    rng = np.random.default_rng(2)
+    image = jnp.asarray(rng.random((n, n, 3)) * 10, jnp.float32)
+    psf = rng.random((n // 4 + 1, n // 4 + 1, 3))
+    return image, jnp.asarray(psf / psf.sum(axis=(0, 1)), jnp.float32)
+
+
+def _convolve_forward(n: int):
+    import jax
+
+    from invglare.render.convolve import convolve_psf
+
+    image, psf = _convolve_setup(n)
+    run = jax.jit(convolve_psf)
+    return lambda: run(image, psf)
+
+
+def _convolve_gradient(n: int):
+    import jax
+    import jax.numpy as jnp
+
+    from invglare.render.convolve import convolve_psf
+
+    image, psf = _convolve_setup(n)
+    grad = jax.jit(jax.grad(lambda p: jnp.sum(jnp.sqrt(convolve_psf(image, p) + 1.0))))
+    return lambda: grad(psf)
+
+
 CASES: tuple[Case, ...] = (
     Case("fft_floor_scipy", "floor", "scipy.fft.fft2, complex64, 2 workers", _scipy_fft),
     Case("fft_floor_pyfftw", "floor", "pyfftw fft2, complex64, 2 threads", _pyfftw_fft),
@@ -101,7 +132,7 @@ CASES: tuple[Case, ...] = (
     Case(
         "psf_mono",
         "pipeline",
-        "disk raster (N/2) + FFT + |.|^2 + normalise, jitted",
+        "disk raster (N/2) + real FFT to N + squared modulus + normalise, jitted",
         _psf_forward,
     ),
     Case(
@@ -110,5 +141,18 @@ CASES: tuple[Case, ...] = (
         "d(sum w * PSF)/d(diameter) of psf_mono",
         _psf_gradient,
         forward="psf_mono",
+    ),
+    Case(
+        "convolve_rgb",
+        "pipeline",
+        "FFT convolution of an N x N RGB frame with an (N/4+1)^2 RGB PSF, padded",
+        _convolve_forward,
+    ),
+    Case(
+        "convolve_rgb_grad",
+        "pipeline",
+        "gradient of a loss of convolve_rgb w.r.t. the PSF",
+        _convolve_gradient,
+        forward="convolve_rgb",
     ),
 )

@@ -105,8 +105,10 @@ def run_render(
             )
         # Listed bright pixels are replaced by their spread light, so energy is conserved;
         # bright pixels beyond max_bright stay as they are.
-        listed = jnp.zeros(image.shape[:2]).at[bright.rows, bright.cols].max(
-            bright.valid.astype(image.dtype)
+        listed = (
+            jnp.zeros(image.shape[:2])
+            .at[bright.rows, bright.cols]
+            .max(bright.valid.astype(image.dtype))
         )
         keep = 1.0 - (listed if image.ndim == 2 else listed[..., None])
         result = add_billboards(image * keep, bright, psf)

@@ -4,7 +4,7 @@ Schema of a model config (every key but ``model.kind``, ``focal_length_mm`` and 
 shapes has a default)::
 
     [model]
-    kind = "aperture"             # the only model kind so far
+    kind = "aperture"             # "aperture", "eye" or "camera" (see below)
     focal_length_mm = 17.0        # pupil-to-retina / lens-to-sensor distance
     propagation = "fraunhofer"    # or "fresnel" (the E term of Ritschel et al., eq. 3)
     aperture_npix = 256           # raster size of the aperture window
@@ -25,6 +25,33 @@ shapes has a default)::
     reference_wavelength_nm = 575.0
     illuminant = "E"              # colour-science illuminant name, or "E"
     colourspace = "sRGB"          # linear RGB space of a spectral PSF
+
+The kinds ``"eye"`` and ``"camera"`` are the wave-optics glare model of Kakimoto et al.
+(:class:`~invglare.models.kakimoto.KakimotoGlare`): an obstacle image (lids and lashes,
+or a cross-screen filter) masked by a pupil (the eye's, or a diaphragm). They take no
+``model.shapes``; instead::
+
+    [model]
+    kind = "eye"
+    focal_length_mm = 17.0        # for a camera: default the diaphragm's focal length
+    obstacle_distance_mm = 8.0    # obstacle plane to pupil (default 8 eye, 0 camera)
+    masking = "fixed"             # or "position" (the obstacle scrolls with the light)
+    colour = "spectral"           # or "paper_rgb" (680/530/460 nm as R, G, B)
+    max_light_angle_deg = 0.0
+
+    [model.eye]                   # see invglare.aperture.eye.eye_from_config
+    seed = 7
+    [model.eye.pupil]
+    diameter_mm = 3.0
+
+    [model.camera]                # for kind = "camera": CameraAperture.from_config
+    [model.camera.diaphragm]
+    n_blades = 6
+    f_number = 8.0
+    focal_length_mm = 50.0
+
+Without ``[spectrum] wavelengths_nm`` a spectral model uses 380:770:32 and a paper_rgb
+model 680/530/460 nm; one wavelength gives a monochrome PSF (what a fit needs).
 """
 
 from __future__ import annotations
@@ -33,14 +60,19 @@ from pathlib import Path
 from typing import Any
 
 from invglare.aperture import Aperture, shape_from_config, shape_to_config
+from invglare.aperture.camera import CameraAperture, camera_to_config
+from invglare.aperture.eye import EyeAperture, eye_from_config, eye_to_config
 from invglare.errors import ConfigError
 from invglare.io.config import Section, check_sections
 from invglare.models.aperture_psf import AperturePSF
+from invglare.models.kakimoto import COLOURS, MASKINGS, KakimotoGlare, kakimoto_to_config
 from invglare.optics.propagator import METHODS, PROPAGATIONS
 from invglare.optics.spectral import SPECTRAL_METHODS, parse_wavelengths
 
-MODEL_KINDS = ("aperture",)
+MODEL_KINDS = ("aperture", "eye", "camera")
+GlareModel = AperturePSF | KakimotoGlare
 SECTIONS = ("model", "output", "spectrum")
+_GLARE_KEYS = ("obstacle_distance_mm", "masking", "colour", "max_light_angle_deg")
 
 
 def build_model(
@@ -51,7 +83,7 @@ def build_model(
     pixel_scale_deg: float | None = None,
     wavelengths_nm: Any = None,
     source: str = "config",
-) -> AperturePSF:
+) -> GlareModel:
     """Build the forward model a config describes; keyword arguments override the config."""
     check_sections(config, SECTIONS, source)
     if "model" not in config:
@@ -62,62 +94,103 @@ def build_model(
         raise ConfigError(
             f"model.kind = {kind!r} is unknown; valid kinds: {', '.join(MODEL_KINDS)}"
         )
-    focal = model.get("focal_length_mm", float, required=True)
-    propagation = model.choice("propagation", PROPAGATIONS, "fraunhofer")
-    aperture_npix = model.get("aperture_npix", int, 256)
-    window = model.get("window_mm", float, None)
-    method = model.choice("method", METHODS, "auto")
-    tables = model.get("shapes", list, required=True)
-    model.finish()
-    if not tables:
-        raise ConfigError("model.shapes is empty; give at least one [[model.shapes]] table")
-    shapes = tuple(
-        shape_from_config(t, f"model.shapes[{i}]", base_dir=base_dir) for i, t in enumerate(tables)
+    if kind == "aperture":
+        focal = model.get("focal_length_mm", float, required=True)
+        tables = model.get("shapes", list, required=True)
+        if not tables:
+            raise ConfigError("model.shapes is empty; give at least one [[model.shapes]] table")
+        aperture = Aperture(
+            tuple(
+                shape_from_config(t, f"model.shapes[{i}]", base_dir=base_dir)
+                for i, t in enumerate(tables)
+            )
+        )
+    else:
+        table = model.get(kind, dict, required=True)
+        if kind == "eye":
+            aperture = eye_from_config(table, "model.eye")
+            focal = model.get("focal_length_mm", float, 17.0)
+            distance = model.get("obstacle_distance_mm", float, 8.0)
+        else:
+            aperture = CameraAperture.from_config(table, "model.camera")
+            focal = model.get("focal_length_mm", float, None)
+            if focal is None:
+                focal = float(aperture.diaphragm.focal_length_mm)
+            distance = model.get("obstacle_distance_mm", float, 0.0)
+        glare = dict(
+            obstacle_distance_mm=distance,
+            masking=model.choice("masking", MASKINGS, "fixed"),
+            colour=model.choice("colour", COLOURS, "spectral"),
+            max_light_angle_deg=model.get("max_light_angle_deg", float, 0.0),
+        )
+    sampling = dict(
+        propagation=model.choice("propagation", PROPAGATIONS, "fraunhofer"),
+        aperture_npix=model.get("aperture_npix", int, 256),
+        window_mm=model.get("window_mm", float, None),
+        method=model.choice("method", METHODS, "auto"),
     )
+    model.finish()
 
     output = Section(config.get("output", {}), "output")
-    out_npix = output.get("npix", int, 512)
+    sampling["npix"] = output.get("npix", int, 512) if npix is None else npix
     scale = output.get("pixel_scale_deg", float, None)
+    sampling["pixel_scale_deg"] = scale if pixel_scale_deg is None else pixel_scale_deg
     output.finish()
 
     spectrum = Section(config.get("spectrum", {}), "spectrum")
-    lams = spectrum.get("wavelengths_nm", (float, list, str), 550.0)
-    spectral = spectrum.choice("spectral", SPECTRAL_METHODS, "exact")
-    reference = spectrum.get("reference_wavelength_nm", float, 575.0)
-    illuminant = spectrum.get("illuminant", str, "E")
-    colourspace = spectrum.get("colourspace", str, "sRGB")
+    lams = spectrum.get("wavelengths_nm", (float, list, str), 550.0 if kind == "aperture" else None)
+    colour = dict(
+        spectral=spectrum.choice("spectral", SPECTRAL_METHODS, "exact"),
+        reference_wavelength_nm=spectrum.get("reference_wavelength_nm", float, 575.0),
+        illuminant=spectrum.get("illuminant", str, "E"),
+        colourspace=spectrum.get("colourspace", str, "sRGB"),
+    )
     spectrum.finish()
+    if wavelengths_nm is not None:
+        lams = wavelengths_nm
+    lams = None if lams is None else parse_wavelengths(lams)
 
-    return AperturePSF.build(
-        Aperture(shapes),
-        focal_length_mm=focal,
-        wavelengths_nm=parse_wavelengths(lams if wavelengths_nm is None else wavelengths_nm),
-        npix=out_npix if npix is None else npix,
-        pixel_scale_deg=scale if pixel_scale_deg is None else pixel_scale_deg,
-        aperture_npix=aperture_npix,
-        window_mm=window,
-        propagation=propagation,
-        method=method,
-        spectral=spectral,
-        reference_wavelength_nm=reference,
-        illuminant=illuminant,
-        colourspace=colourspace,
+    if kind == "aperture":
+        return AperturePSF.build(
+            aperture, focal_length_mm=focal, wavelengths_nm=lams, **sampling, **colour
+        )
+    return KakimotoGlare.build(
+        aperture, focal_length_mm=focal, wavelengths_nm=lams, **glare, **sampling, **colour
     )
 
 
-def model_to_config(model: AperturePSF) -> dict[str, Any]:
-    """The config of a built model with every choice made explicit (for file headers)."""
+def model_to_config(model: GlareModel) -> dict[str, Any]:
+    """The config of a built model with every choice made explicit (for file headers).
+
+    ``build_model(model_to_config(model))`` rebuilds the same model.
+    """
     prop, spec = model.propagator, model.spectrum
-    return {
-        "model": {
+    table: dict[str, Any] = {
+        "focal_length_mm": float(prop.focal_length_mm),
+        "propagation": prop.propagation,
+        "aperture_npix": prop.grid.npix,
+        "window_mm": float(prop.grid.width_mm),
+        "method": prop.method,
+    }
+    if isinstance(model, KakimotoGlare):
+        choices = kakimoto_to_config(model)
+        table |= {k: choices[k] for k in _GLARE_KEYS}
+        if isinstance(model.aperture, EyeAperture):
+            table = {"kind": "eye", **table, "eye": eye_to_config(model.aperture)}
+        elif isinstance(model.aperture, CameraAperture):
+            table = {"kind": "camera", **table, "camera": camera_to_config(model.aperture)}
+        else:
+            raise ConfigError(
+                f"no config form for a Kakimoto model of a {type(model.aperture).__name__}"
+            )
+    else:
+        table = {
             "kind": "aperture",
-            "focal_length_mm": float(prop.focal_length_mm),
-            "propagation": prop.propagation,
-            "aperture_npix": prop.grid.npix,
-            "window_mm": float(prop.grid.width_mm),
-            "method": prop.method,
+            **table,
             "shapes": [shape_to_config(s) for s in model.aperture.shapes],
-        },
+        }
+    return {
+        "model": table,
         "output": {
             "npix": prop.output.npix,
             "pixel_scale_deg": float(prop.output.pixel_scale_deg),

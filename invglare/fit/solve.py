@@ -1,0 +1,596 @@
+"""Fitting: multi-start, coarse-to-fine optimistix solves and a covariance at the optimum.
+
+:func:`fit` runs every start of a stage in **one** `jax.vmap`-ed, jitted call of
+``optx.least_squares(..., throw=False)`` (Levenberg–Marquardt on the residual
+vector, the default) or ``optx.minimise`` (BFGS on ``sum(r**2) / 2``). Under
+`vmap` each start keeps its own damping and stops on its own criterion; the
+batched loop simply runs until the slowest start is done, so a vmapped start
+returns the same answer as a solo run (``batch="loop"`` does that, for checking
+and for starts too memory-hungry to batch).
+
+Coarse-to-fine: with ``coarse_to_fine=(2, 1)`` the first stage compares 2x2
+block sums of target and prediction (flux-preserving; the read noise of a
+block sum grows by 2; a block holding a clipped pixel is censored at its
+observed sum) from all starts, and the second refines the best `refine_top` of
+them at full resolution. The model is still evaluated at full resolution and
+its prediction summed, so the parameters keep their units across stages; what
+the coarse stage saves is the size of the least-squares problem, and what it
+buys is an objective without pixel-scale structure. The image-statistic views
+(radial, angular, halo) are reductions already and are evaluated at full
+resolution in every stage. Blocks must stay smaller than the PSF core: on a
+64-px photo with a 3-px Airy core, 4x4 blocks made the coarse objective *more*
+multimodal (the starts settled in wrong minima) while 2x2 blocks did not.
+
+The covariance comes from the Jacobian ``J = d r / d z`` of the full-resolution
+residuals at the optimum, in latent space, ``s**2 (J^T J)^-1``, mapped to the
+physical values by the (diagonal) derivative of the transforms,
+``C = D C_z D`` with ``D = diag(dx/dz)``. ``s**2`` (`covariance_scale`):
+
+- ``"chi2"`` (default): the reduced chi-square ``sum(r**2) / (n - p)``, i.e.
+  errors scaled by the actual scatter of the residuals (as
+  ``scipy.optimize.curve_fit`` does by default). When the residuals are
+  noise-normalised (the ``"pixels"`` view) and the noise model is right this is
+  close to 1; when they are not (log, radial, angular views), it puts the
+  covariance in the residuals' own scale;
+- ``"absolute"``: 1, trusting the noise model (noise-normalised residuals only);
+- a number: that value.
+"""
+
+from __future__ import annotations
+
+import collections
+import dataclasses
+import itertools
+import math
+import time
+from collections.abc import Callable, Mapping, Sequence
+from typing import Any, NamedTuple
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optimistix as optx
+from jaxtyping import Array, ArrayLike, Float, PRNGKeyArray
+
+from invglare.errors import ConfigError
+from invglare.fit.observation import Forward
+from invglare.fit.params import ParameterSpace
+from invglare.fit.result import FitResult
+from invglare.fit.views import PixelView, ResidualFn, make_residual_fn
+
+SOLVERS = ("lm", "bfgs")
+BATCH_MODES = ("vmap", "loop")
+
+# Status codes returned from inside the jitted solve (an optimistix RESULTS item can
+# be compared but not carried out of `vmap` as a message).
+_STATUS = (
+    "successful",
+    "nonlinear_max_steps_reached",
+    "max_steps_reached",
+    "nonfinite",
+    "nonfinite_input",
+    "nonlinear_divergence",
+    "singular",
+)
+
+
+class FitProgress(NamedTuple):
+    """One progress report: a start of a stage accepted a step with this loss."""
+
+    stage: int
+    n_stages: int
+    factor: int
+    start: int
+    n_starts: int
+    n_accepted: int
+    loss: float
+
+
+def _encode(x: Array) -> Array:
+    """A float as uint32 words (two for float64), to reach a host callback bit for bit.
+
+    JAX converts callback arguments with the callback thread's settings; where
+    float64 is enabled by the thread-local ``jax.enable_x64()`` context, the
+    callback thread would truncate a float64 loss to float32 (and warn on
+    overflow). Integer words pass unchanged.
+    """
+    x = jnp.asarray(x)
+    if x.dtype != jnp.float64:
+        x = x.astype(jnp.float32)
+    return jax.lax.bitcast_convert_type(x, jnp.uint32)
+
+
+def _decode(words) -> float:
+    w = np.asarray(words, dtype=np.uint32).reshape(-1)
+    return float(w.view(np.float64)[0] if w.size == 2 else w.view(np.float32)[0])
+
+
+# Host-side receivers of the per-step losses, by run id. The compiled solve carries only
+# the id (an array), so one executable serves every fit of the same shape.
+_SINKS: dict[int, Callable] = {}
+_NEXT_RUN = itertools.count(1)
+
+
+def _dispatch(run, start, loss_this, loss_last) -> None:
+    sink = _SINKS.get(int(run))
+    if sink is not None:
+        sink(int(start), _decode(loss_this), _decode(loss_last))
+
+
+class _Recorder(eqx.Module):
+    """Optimistix `verbose` hook: sends each step's losses to the host, tagged with the start.
+
+    It is a Module so that `run` and `start` are array leaves — under `vmap` every
+    start reports its own index (JAX runs a batched callback once per element).
+    """
+
+    run: Array
+    start: Array
+
+    def __call__(self, **kwargs):
+        this = kwargs.get("loss_this_step")
+        last = kwargs.get("loss_last_accepted_step")
+        if this is None or last is None:
+            return
+        jax.debug.callback(
+            _dispatch,
+            self.run.astype(jnp.int32),
+            self.start.astype(jnp.int32),
+            _encode(this[1]),
+            _encode(last[1]),
+        )
+
+
+@dataclasses.dataclass(frozen=True)
+class _Config:
+    solver: str
+    rtol: float
+    atol: float
+    max_steps: int
+    record: bool
+
+
+def _status_code(result) -> Array:
+    code = jnp.asarray(-1)
+    for i, name in enumerate(_STATUS):
+        item = getattr(optx.RESULTS, name, None)
+        if item is not None:
+            code = jnp.where(result == item, i, code)
+    return code
+
+
+def _solve_one(fn: ResidualFn, y0: Array, start: Array, run: Array, cfg: _Config):
+    verbose = _Recorder(run, start) if cfg.record else False
+    if cfg.solver == "lm":
+        solver = optx.LevenbergMarquardt(rtol=cfg.rtol, atol=cfg.atol, verbose=verbose)
+        sol = optx.least_squares(fn, solver, y0, max_steps=cfg.max_steps, throw=False)
+    else:
+        solver = optx.BFGS(rtol=cfg.rtol, atol=cfg.atol, verbose=verbose)
+
+        def half_sum_squares(y, args):
+            r = fn(y, args)
+            return 0.5 * jnp.sum(r * r)
+
+        sol = optx.minimise(half_sum_squares, solver, y0, max_steps=cfg.max_steps, throw=False)
+    r = fn(sol.value, None)
+    return sol.value, jnp.sum(r * r), _status_code(sol.result), sol.stats["num_steps"]
+
+
+def _status_message(code: int, n_steps: int, loss: float, cfg: _Config) -> tuple[bool, str]:
+    name = _STATUS[code] if 0 <= code < len(_STATUS) else "unknown"
+    if not math.isfinite(loss) or name in ("nonfinite", "nonfinite_input"):
+        return False, (
+            "non-finite values (NaN or inf) in the residuals or parameters: check the target "
+            "for bad pixels, narrow the bounds, or start closer to a sensible model"
+        )
+    if name == "successful":
+        return True, f"converged after {n_steps} steps"
+    if name in ("nonlinear_max_steps_reached", "max_steps_reached"):
+        return False, (
+            f"hit max_steps={cfg.max_steps} without converging: raise max_steps or loosen "
+            f"rtol={cfg.rtol:g} / atol={cfg.atol:g}"
+        )
+    if name == "nonlinear_divergence":
+        return False, "the solver diverged: narrow the bounds or use other starts"
+    if name == "singular":
+        return False, (
+            "a linear solve was singular: some parameter probably does not change the "
+            "residuals (check its path and the chosen views)"
+        )
+    return False, "the solver stopped without converging (unrecognised optimistix result)"
+
+
+class _History:
+    """Collects the per-step losses reported by :class:`_Recorder` for one stage."""
+
+    def __init__(self, stage: int, n_stages: int, factor: int, n_starts: int, progress):
+        self.raw: dict[int, list[tuple[float, float]]] = {i: [] for i in range(n_starts)}
+        self.info = (stage, n_stages, factor, n_starts)
+        self.progress = progress
+        self._reported: dict[int, float] = {}
+
+    def __call__(self, i: int, loss_this: float, loss_last: float) -> None:
+        # Optimistix reports sum(r**2) / 2; the fit's loss is sum(r**2).
+        entry = (2.0 * loss_this, 2.0 * loss_last)
+        self.raw.setdefault(i, []).append(entry)
+        if self.progress is not None:
+            hist = self.history(i)
+            if hist and self._reported.get(i) != hist[-1]:
+                self._reported[i] = hist[-1]
+                stage, n_stages, factor, n_starts = self.info
+                self.progress(
+                    FitProgress(stage, n_stages, factor, i, n_starts, len(hist) - 1, hist[-1])
+                )
+
+    def history(self, start: int, final: float | None = None) -> list[float]:
+        """Loss at the start and after each accepted step (repeats from `vmap` padding dropped)."""
+        raw = self.raw.get(start, [])
+        # The first report carries the loss at y0 as "this step" (the "last accepted" is not
+        # yet defined); later reports carry the last accepted loss.
+        seq = [raw[0][0]] + [last for _, last in raw[1:]] if raw else []
+        if final is not None:
+            seq.append(float(final))
+        out: list[float] = []
+        for v in seq:
+            if not out or v != out[-1]:
+                out.append(v)
+        return out
+
+
+#: Compiled solves kept for reuse: a fit with the same shapes, settings and parameter
+#: space (bounds *and* initial values, which are part of the space's static identity)
+#: skips compilation. Least recently used first.
+_COMPILED: collections.OrderedDict = collections.OrderedDict()
+_COMPILED_MAX = 8
+
+
+def _batched(f, y, i, run, cfg):
+    return jax.vmap(lambda yy, ii: _solve_one(f, yy, ii, run, cfg))(y, i)
+
+
+# `fn` is an argument, not a closure, so its arrays (target, fixed leaves) are inputs
+# of the compiled program rather than baked-in constants.
+_batched_jit = eqx.filter_jit(_batched)
+_single_jit = eqx.filter_jit(_solve_one)
+
+
+def _compile(fn, y0, starts, run, cfg, batch) -> tuple[Any, float]:
+    """The compiled solve for these shapes and settings (cached) and the seconds compiling took."""
+    dynamic, static = eqx.partition((fn, y0, starts), eqx.is_array)
+    leaves, treedef = jax.tree_util.tree_flatten(dynamic)
+    key = (batch, cfg, treedef, tuple((x.shape, x.dtype) for x in leaves), static)
+    try:
+        hit = _COMPILED.get(key)
+    except TypeError:  # something unhashable in the model's static part: no caching
+        key, hit = None, None
+    if hit is not None:
+        _COMPILED.move_to_end(key)
+        return hit, 0.0
+    t0 = time.perf_counter()
+    jitted = _batched_jit if batch == "vmap" else _single_jit
+    compiled = jitted.lower(fn, y0, starts, run, cfg).compile()
+    elapsed = time.perf_counter() - t0
+    if key is not None:
+        _COMPILED[key] = compiled
+        while len(_COMPILED) > _COMPILED_MAX:
+            _COMPILED.popitem(last=False)
+    return compiled, elapsed
+
+
+def _run_stage(
+    fn: ResidualFn,
+    y0s: Float[Array, "n p"],
+    cfg: _Config,
+    batch: str,
+    sink: Callable | None,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, float, float]:
+    """Solve from every row of `y0s`; returns values, losses, codes, steps, compile s, solve s."""
+    starts = jnp.arange(y0s.shape[0], dtype=jnp.int32)
+    run_id = next(_NEXT_RUN)
+    run = jnp.asarray(run_id, dtype=jnp.int32)
+    if sink is not None:
+        _SINKS[run_id] = sink
+    try:
+        if batch == "vmap":
+            compiled, t_compile = _compile(fn, y0s, starts, run, cfg, batch)
+            t1 = time.perf_counter()
+            out = jax.block_until_ready(compiled(fn, y0s, starts, run, cfg))
+            values, losses, codes, steps = (np.asarray(o) for o in out)
+        else:
+            compiled, t_compile = _compile(fn, y0s[0], starts[0], run, cfg, batch)
+            t1 = time.perf_counter()
+            outs = [
+                jax.block_until_ready(compiled(fn, y0s[k], starts[k], run, cfg))
+                for k in range(y0s.shape[0])
+            ]
+            values, losses, codes, steps = (
+                np.stack([np.asarray(o[j]) for o in outs]) for j in range(4)
+            )
+        # Callbacks are asynchronous: make sure every report has arrived.
+        jax.effects_barrier()
+        t2 = time.perf_counter()
+    finally:
+        _SINKS.pop(run_id, None)
+    return values, losses, codes, steps, t_compile, t2 - t1
+
+
+@eqx.filter_jit
+def _jacobian_and_residuals(fn: ResidualFn, latent: Array) -> tuple[Array, Array]:
+    # One compiled program; run eagerly, jacfwd would dispatch (and compile) op by op.
+    return jax.jacfwd(lambda z: fn(z, None))(latent), fn(latent, None)
+
+
+@eqx.filter_jit
+def _predict(fn: ResidualFn, latent: Array) -> tuple[Array, Array, Array]:
+    fwd = fn.forward_at(latent)
+    expected, predicted = fwd.predict()
+    return expected, predicted, fwd.obs.variance(expected)
+
+
+def _covariance(
+    fn: ResidualFn, latent: Array, space: ParameterSpace, scale: str | float
+) -> tuple[np.ndarray, np.ndarray, float, int, float, str]:
+    """Physical covariance, stderr, loss, effective residual count, s**2 and a note."""
+    jac, r = _jacobian_and_residuals(fn, latent)
+    jac = np.asarray(jac, dtype=np.float64)
+    r = np.asarray(r, dtype=np.float64)
+    loss = float(r @ r)
+    p = space.size
+    # Masked pixels give residuals that are 0 whatever the parameters: not data.
+    active = np.any(jac != 0, axis=1) | (r != 0)
+    n = int(active.sum())
+    dof = n - p
+    if isinstance(scale, str):
+        if scale == "chi2":
+            s2 = loss / dof if dof > 0 else math.nan
+        elif scale == "absolute":
+            s2 = 1.0
+        else:
+            raise ConfigError(f"covariance_scale {scale!r} is not 'chi2', 'absolute' or a number")
+    else:
+        s2 = float(scale)
+    # A parameter whose Jacobian column is 0 is not constrained at all: its variance is
+    # undefined (NaN), and the others come from the remaining block.
+    free = np.any(jac != 0, axis=0)
+    cov_z = np.full((p, p), np.nan)
+    note = ""
+    flat = [space.paths[k] for k in range(p) if not free[k]]
+    if flat:
+        note = f"; {', '.join(flat)} do not change the residuals (stderr undefined)"
+    if free.any():
+        jtj = jac[:, free].T @ jac[:, free]
+        eig = np.linalg.eigvalsh(jtj)
+        if np.all(np.isfinite(jtj)) and eig[-1] > 0 and eig[0] > 1e-12 * eig[-1]:
+            cov_z[np.ix_(free, free)] = s2 * np.linalg.inv(jtj)
+        else:
+            note += (
+                "; the covariance is singular (parameters are degenerate: some combination "
+                "does not change the residuals), stderr undefined"
+            )
+    d = np.asarray(space.jacobian_diag(latent), dtype=np.float64)
+    cov = d[:, None] * cov_z * d[None, :]
+    stderr = np.sqrt(np.where(np.diag(cov) >= 0, np.diag(cov), np.nan))
+    return cov, stderr, loss, n, s2, note
+
+
+def _latent_starts(
+    space: ParameterSpace,
+    starts: Any,
+    n_starts: int,
+    key: PRNGKeyArray | None,
+) -> Float[Array, "n p"]:
+    if starts is None:
+        key = jax.random.key(0) if key is None else key
+        return space.sample_starts(key, n_starts)
+    if isinstance(starts, Mapping):
+        starts = [starts]
+    if isinstance(starts, Sequence) and starts and isinstance(starts[0], Mapping):
+        values = jnp.stack([space.values_from(s) for s in starts])
+    else:
+        values = jnp.atleast_2d(space.values_from(starts))
+    for row in np.asarray(values):
+        for p, v in zip(space.all, row, strict=True):
+            ok = (p.lower < v < p.upper) if p.kind != "identity" else (p.lower <= v <= p.upper)
+            if not ok:
+                raise ConfigError(
+                    f"start value {v:g} of {p.path!r} is not inside [{p.lower:g}, {p.upper:g}]"
+                )
+    return space.to_latent(values)
+
+
+def fit(
+    space: ParameterSpace,
+    forward_template: Forward,
+    target: Float[ArrayLike, "h w"],
+    views: Mapping[str, float] | None = None,
+    *,
+    solver: str = "lm",
+    n_starts: int = 3,
+    key: PRNGKeyArray | None = None,
+    starts: Any = None,
+    max_steps: int = 256,
+    rtol: float = 1e-6,
+    atol: float = 1e-8,
+    coarse_to_fine: Sequence[int] = (1,),
+    refine_top: int = 1,
+    view_options: Mapping[str, Mapping[str, Any]] | None = None,
+    covariance_scale: str | float = "chi2",
+    truth: Mapping[str, float] | None = None,
+    batch: str = "vmap",
+    progress: Callable[[FitProgress], None] | None = None,
+    record_history: bool = True,
+) -> FitResult:
+    """Fit the free parameters of `space` to a target photo.
+
+    **Arguments:**
+
+    - `space`: free parameters and nuisances (paths into `forward_template`).
+    - `forward_template`: ``Forward(model, obs)`` holding every fixed value.
+    - `target`: the photo, linear counts, shape of the model's output.
+    - `views`: ``{name: weight}`` (default ``{"pixels": 1.0}``), see
+      :mod:`invglare.fit.views`; `view_options` sets their options.
+    - `solver`: ``"lm"`` (Levenberg–Marquardt on residuals) or ``"bfgs"`` (BFGS on
+      ``sum(r**2) / 2``).
+    - `n_starts`, `key`: starts drawn across the bounds by
+      :meth:`ParameterSpace.sample_starts` (key defaults to ``jax.random.key(0)``);
+      or `starts`: physical values, ``(n, p)`` or a list of ``{path: value}``.
+    - `max_steps`, `rtol`, `atol`: solver budget and tolerances (on the latent
+      step and the loss change, optimistix's Cauchy criterion).
+    - `coarse_to_fine`: block sizes of the stages, ending with 1, e.g. ``(2, 1)``.
+      Pick blocks no larger than about half the PSF core: coarser blocks wash out
+      the core and make the objective *more* multimodal, not less.
+    - `refine_top`: how many of a stage's best starts the next stage refines (1:
+      only the best).
+    - `covariance_scale`: ``"chi2"``, ``"absolute"`` or a number (module docstring).
+    - `truth`: ``{path: value}`` stored in the result, for synthetic targets.
+    - `batch`: ``"vmap"`` (all starts in one call) or ``"loop"`` (one call each).
+    - `progress`: called with a :class:`FitProgress` whenever a start accepts a
+      step (from JAX's host callback, while the solve runs).
+    - `record_history`: collect the loss history (host callbacks; a little slower).
+
+    Fitting in float64 (``jax.enable_x64``) is recommended: the tolerances above
+    are near float32's resolution.
+
+    **Returns:** a :class:`~invglare.fit.FitResult`.
+
+    **Example:**
+
+    ```python
+    res = fit(space, Forward(model, obs), photo, {"pixels": 1.0}, n_starts=3,
+              coarse_to_fine=(4, 1), key=jax.random.key(1))
+    print(res.summary())
+    ```
+    """
+    if solver not in SOLVERS:
+        raise ConfigError(f"solver {solver!r} is not one of {', '.join(SOLVERS)}")
+    if batch not in BATCH_MODES:
+        raise ConfigError(f"batch {batch!r} is not one of {', '.join(BATCH_MODES)}")
+    factors = tuple(coarse_to_fine)
+    if (
+        not factors
+        or any(not isinstance(f, int | np.integer) or f < 1 for f in factors)
+        or factors[-1] != 1
+    ):
+        raise ConfigError(
+            f"coarse_to_fine must be integers >= 1 ending with 1, e.g. (4, 1); got {factors!r}"
+        )
+    if int(refine_top) != refine_top or refine_top < 1:
+        raise ConfigError(f"refine_top must be an integer >= 1, got {refine_top!r}")
+    if int(max_steps) != max_steps or max_steps < 1:
+        raise ConfigError(f"max_steps must be an integer >= 1, got {max_steps!r}")
+    if not (rtol >= 0 and atol >= 0 and rtol + atol > 0):
+        raise ConfigError(f"rtol and atol must be >= 0 and not both 0, got {rtol!r}, {atol!r}")
+    if isinstance(covariance_scale, str) and covariance_scale not in ("chi2", "absolute"):
+        raise ConfigError(
+            f"covariance_scale {covariance_scale!r} is not 'chi2', 'absolute' or a number"
+        )
+    views = {"pixels": 1.0} if views is None else views
+    if truth is not None:
+        unknown = [p for p in truth if p not in space.paths]
+        if unknown:
+            raise ConfigError(f"truth names {unknown} which are not free parameters")
+
+    t_start = time.perf_counter()
+    fn_full = make_residual_fn(space, forward_template, target, views, view_options=view_options)
+    y0s = _latent_starts(space, starts, n_starts, key)
+    first_starts = [space.as_dict(v) for v in np.asarray(space.from_latent(y0s))]
+
+    stages: list[dict[str, Any]] = []
+    compile_s = solve_s = 0.0
+    stage_y0 = y0s
+    origin = np.arange(y0s.shape[0])  # first-stage start each current start descends from
+    steps_so_far = np.zeros(y0s.shape[0], dtype=int)
+    for s, factor in enumerate(factors):
+        fn = fn_full if factor == 1 else fn_full.with_factor(int(factor))
+        history = _History(s, len(factors), int(factor), stage_y0.shape[0], progress)
+        cfg = _Config(solver, float(rtol), float(atol), int(max_steps), bool(record_history))
+        sink = history if record_history else None
+        values, losses, codes, steps, t_c, t_s = _run_stage(fn, stage_y0, cfg, batch, sink)
+        compile_s += t_c
+        solve_s += t_s
+        losses = np.where(np.isfinite(losses), losses, np.inf)
+        statuses = [
+            _status_message(int(c), int(n), float(lo), cfg)
+            for c, n, lo in zip(codes, steps, losses, strict=True)
+        ]
+        order = np.argsort(losses, kind="stable")
+        stages.append(
+            {
+                "factor": int(factor),
+                "origin": [int(o) for o in origin],
+                "n_steps": [int(n) for n in steps],
+                "final_loss": [float(v) for v in losses],
+                "converged": [c for c, _ in statuses],
+                "messages": [m for _, m in statuses],
+                "loss_history": [
+                    history.history(i, losses[i]) if record_history else [float(losses[i])]
+                    for i in range(stage_y0.shape[0])
+                ],
+                "best": int(order[0]),
+                "compile_s": t_c,
+                "solve_s": t_s,
+            }
+        )
+        steps_so_far = steps_so_far + steps.astype(int)
+        if s + 1 < len(factors):
+            # The next, finer stage starts from the best few of this one.
+            keep = order[: max(1, min(int(refine_top), len(order)))]
+            stage_y0 = jnp.asarray(values[keep])
+            origin, steps_so_far = origin[keep], steps_so_far[keep]
+    k = int(order[0])
+    best_latent = jnp.asarray(values[k])
+    best_start = int(origin[k])
+    n_steps_total = int(steps_so_far[k])
+    converged, message = statuses[k]
+
+    cov, stderr, loss, n_res, s2, note = _covariance(fn_full, best_latent, space, covariance_scale)
+    values = space.as_dict(space.from_latent(best_latent))
+    expected, predicted, variance = (np.asarray(a) for a in _predict(fn_full, best_latent))
+    target_arr = np.asarray(fn_full.target)
+    sigma = np.sqrt(variance + 1e-30)
+    residual_map = np.where(np.asarray(fn_full.saturated), 0.0, (target_arr - expected) / sigma)
+    n_starts_run = len(stages[0]["n_steps"])
+    where = f"stage {len(factors)}/{len(factors)} at full resolution" if len(factors) > 1 else ""
+    summary = (
+        f"{message} ({'best of ' + str(n_starts_run) + ' starts: start ' + str(best_start)}"
+        f"{'; ' + where if where else ''}){note}"
+    )
+    p = space.size
+    reduced = loss / (n_res - p) if n_res > p else math.nan
+    normalised = all(
+        isinstance(v, PixelView) and v.domain in ("anscombe", "pearson") for v in fn_full.views
+    )
+    if normalised and reduced > 3.0:
+        summary += (
+            f"; but the reduced chi-square is {reduced:.3g} (about 1 expected): the model does "
+            "not explain the photo — a local minimum (try more starts or a finer "
+            "coarse_to_fine), or a wrong noise model or model"
+        )
+    return FitResult(
+        paths=list(space.paths),
+        values=values,
+        stderr={path: float(e) for path, e in zip(space.paths, stderr, strict=True)},
+        covariance=cov,
+        nuisance=[pp.path for pp in space.nuisance],
+        truth={k: float(v) for k, v in truth.items()} if truth else None,
+        loss=loss,
+        reduced_chi2=reduced,
+        n_residuals=n_res,
+        covariance_scale=s2,
+        converged=bool(converged),
+        message=summary,
+        n_steps=n_steps_total,
+        best_start=best_start,
+        timing_s={
+            "compile": compile_s,
+            "solve": solve_s,
+            "total": time.perf_counter() - t_start,
+        },
+        solver=solver,
+        views={k: float(v) for k, v in views.items()},
+        stages=stages,
+        starts=first_starts,
+        residual_map=residual_map,
+        model_image=predicted,
+    )

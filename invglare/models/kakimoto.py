@@ -1,0 +1,489 @@
+"""Glare from an obstacle image masked by a pupil: the wave-optics model of Kakimoto et al.
+
+Light from a distant source passes an *obstacle* plane (eyelashes and lids, or a
+camera's cross-screen filter) a distance ``d_o`` in front of the *pupil* (the
+eye's pupil, or a camera's diaphragm) and is focused onto the retina / sensor.
+In the Fraunhofer approximation the glare is the squared modulus of the Fourier
+transform of the obstacle's amplitude transmission ``t_o`` masked by the pupil
+function ``P`` (eq. 2-5 of the paper):
+
+- **fixed mask** (eq. 5, ``masking="fixed"``): ``I ∝ |F[t_o(x) P(x)]|²``, the same
+  PSF for every light direction;
+- **position-dependent mask** (eq. 3, ``masking="position"``): the pupil projected
+  back onto the obstacle plane is centred where the ray to the image point
+  crosses it, so the part of the obstacle that masks the pupil depends on the
+  light direction. As in the paper's implementation (sec. 4.2-4.3: the eyelash
+  silhouette scrolled with the light direction), it is evaluated once per light
+  direction, at the centre of that light's glare, rather than separately at
+  every output pixel: the obstacle image is translated by ``-d_o * tan(angle)``
+  relative to the pupil before masking, ``I ∝ |F[t_o(x + d_o tan(angle)) P(x)]|²``.
+  The neglected part is the drift of the mask *within* one glare pattern: at
+  an angle ``a`` from the glare centre the exact eq. 3 would move the mask by a
+  further ``d_o * a``, which is small when the glare spans a few degrees and
+  ``d_o`` is a few mm (it also stays below the resolution of the pattern's
+  features as long as ``d_o * a`` is much smaller than the obstacle's features).
+
+**Sign convention.** `light_angle_deg` = ``(a_x, a_y)`` is the direction of the
+light in the field of view, in degrees, x to the right and y up (the axes of the
+aperture grid, looking out through the aperture towards the scene). A ray from
+that direction that reaches the pupil at ``x`` crossed the obstacle plane at
+``x + d_o tan(a)``, so the obstacle image seen through the pupil is
+``t_o(x - s)`` with ``s = -d_o tan(a)``: for a light to the right the obstacle
+slides to the left over the pupil. That ``s`` is what is passed as `shift_mm` to
+the aperture's ``obstacle_transmission``. (In the paper's eq. 3 the pupil is
+centred at ``-(d_o / f) x_f`` on the obstacle plane; with the image point
+``x_f = -f tan(a)`` this is the same statement.)
+
+**Apertures.** Any equinox Module with these methods works (see
+:class:`ObstacleAperture`), e.g. :class:`invglare.aperture.camera.CameraAperture`
+and the eye aperture:
+
+- ``pupil_transmission(grid) -> (n, n)``: ``P`` on the grid;
+- ``obstacle_transmission(grid, shift_mm) -> (n, n)``: ``t_o(x - shift_mm)``, for any
+  shift (it must be defined beyond the window, since lights off axis bring other
+  parts of the obstacle over the pupil);
+- ``extent_mm() -> float``: diameter of a disk about the axis holding the pupil;
+- optionally ``with_stamp_windows(grid) -> aperture``: a copy with any static
+  raster shapes fixed for `grid` (the eye's stamp windows); :meth:`KakimotoGlare.build`
+  calls it so that the model works under `jit`, `vmap` and `grad`.
+
+**Output.** Like :class:`~invglare.models.aperture_psf.AperturePSF`, PSFs are
+energy per output pixel, normalised to unit energy per wavelength (the power that
+passes both obstacle and pupil; with the FFT the sum is 1). With
+``colour="paper_rgb"`` each of the R, G, B channels is a monochromatic PSF
+(680, 530, 460 nm) of unit energy, as the paper's three "equal-strength, pure
+coherent" lines; with ``colour="spectral"`` the spectrum is integrated through
+:class:`~invglare.optics.spectral.Spectrum` (linear RGB whose Y has unit energy,
+or a monochrome PSF for a single wavelength).
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any, Protocol, runtime_checkable
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, ArrayLike, Float
+
+from invglare.errors import ConfigError, PhysicsRangeError
+from invglare.models.aperture_psf import build_propagator
+from invglare.optics.propagator import Propagator, choose
+from invglare.optics.sampling import ApertureGrid
+from invglare.optics.spectral import DEFAULT_WAVELENGTHS, Spectrum, parse_wavelengths
+
+__all__ = [
+    "AIRY_FIRST_ZERO",
+    "COLOURS",
+    "MASKINGS",
+    "PAPER_RGB_NM",
+    "KakimotoGlare",
+    "ObstacleAperture",
+    "kakimoto_to_config",
+]
+
+#: The two masking models: eq. 5 (fixed mask) and eq. 3 (mask moving with the light).
+MASKINGS = ("fixed", "position")
+#: Colour modes: the paper's three wavelengths as R, G, B, or a spectrum through `Spectrum`.
+COLOURS = ("paper_rgb", "spectral")
+#: The paper's wavelengths (nm) for the R, G and B channels (sec. 3.2).
+PAPER_RGB_NM = (680.0, 530.0, 460.0)
+#: First zero of the Airy pattern, in units of wavelength / diameter (rad).
+AIRY_FIRST_ZERO = 1.2196698912665045
+
+
+@runtime_checkable
+class ObstacleAperture(Protocol):
+    """What :class:`KakimotoGlare` needs from an aperture (eye or camera)."""
+
+    def pupil_transmission(self, grid: ApertureGrid) -> Float[Array, "n n"]:
+        """Pupil function ``P`` on `grid` (amplitude transmission in [0, 1])."""
+        ...
+
+    def obstacle_transmission(
+        self, grid: ApertureGrid, shift_mm: Float[ArrayLike, " 2"]
+    ) -> Float[Array, "n n"]:
+        """Obstacle image translated by `shift_mm` = (x, y) mm, ``t_o(x - shift_mm)``."""
+        ...
+
+    def extent_mm(self) -> float:
+        """Diameter (mm) of a disk about the axis holding the pupil (concrete)."""
+        ...
+
+
+def _check_non_negative(name: str, value, unit: str) -> None:
+    if isinstance(value, jax.core.Tracer):
+        return
+    arr = np.asarray(value, dtype=float)
+    if arr.shape != () or not np.isfinite(arr) or arr < 0:
+        shown = f"{arr.item():g}" if arr.size == 1 else f"an array of shape {arr.shape}"
+        raise PhysicsRangeError(f"{name} must be a finite number >= 0 {unit}, got {shown}")
+
+
+def _check_angles(light_angle_deg: Array, batched: bool) -> None:
+    """Shape (2,) or (K, 2); concrete values must be finite and within +-90 deg."""
+    expected = "(K, 2)" if batched else "(2,)"
+    ok = light_angle_deg.ndim == (2 if batched else 1) and light_angle_deg.shape[-1] == 2
+    if not ok:
+        raise PhysicsRangeError(
+            f"light_angle_deg must have shape {expected} (x, y angles in deg), "
+            f"got shape {light_angle_deg.shape}"
+        )
+    if isinstance(light_angle_deg, jax.core.Tracer):
+        return
+    arr = np.asarray(light_angle_deg, dtype=float)
+    if not np.all(np.isfinite(arr)) or np.any(np.abs(arr) >= 90.0):
+        raise PhysicsRangeError(
+            f"light_angle_deg must be finite and within (-90, 90) deg, got {arr.tolist()}"
+        )
+
+
+def _float(x) -> Array:
+    arr = jnp.asarray(x)
+    if not jnp.issubdtype(arr.dtype, jnp.floating):
+        arr = arr.astype(jnp.result_type(float))
+    return arr
+
+
+class KakimotoGlare(eqx.Module):
+    """Glare PSF of an obstacle image masked by a pupil (Kakimoto et al., eq. 3 and 5).
+
+    Build one with :meth:`build`, which picks the sampling (the same rules as
+    :class:`~invglare.models.aperture_psf.AperturePSF`).
+
+    **Fields:**
+
+    - `aperture`: an :class:`ObstacleAperture` (eye or camera).
+    - `propagator`: the :class:`~invglare.optics.propagator.Propagator` (aperture grid,
+      output grid, FFT or MFT).
+    - `spectrum`: the :class:`~invglare.optics.spectral.Spectrum`; for ``"paper_rgb"`` its
+      three wavelengths are the R, G, B channels.
+    - `obstacle_distance_mm`: ``d_o``, obstacle plane to pupil (mm, >= 0; array leaf).
+    - `masking`: ``"fixed"`` (eq. 5) or ``"position"`` (eq. 3 as in sec. 4.2), static.
+    - `colour`: ``"paper_rgb"`` or ``"spectral"``, static.
+    - `max_light_angle_deg`: the largest light angle the model is meant for (static;
+      see :meth:`obstacle_window_mm`).
+    """
+
+    aperture: Any
+    propagator: Propagator
+    spectrum: Spectrum
+    obstacle_distance_mm: Float[Array, ""] = eqx.field(converter=_float)
+    masking: str = eqx.field(static=True, default="fixed")
+    colour: str = eqx.field(static=True, default="paper_rgb")
+    max_light_angle_deg: float = eqx.field(static=True, default=0.0)
+
+    def __check_init__(self):
+        if not isinstance(self.aperture, ObstacleAperture):
+            raise ConfigError(
+                f"the Kakimoto model needs an aperture with pupil_transmission(grid), "
+                f"obstacle_transmission(grid, shift_mm) and extent_mm() (an eye or camera "
+                f"aperture), got {type(self.aperture).__name__}"
+            )
+        choose("masking", self.masking, MASKINGS)
+        choose("colour", self.colour, COLOURS)
+        _check_non_negative("obstacle_distance_mm", self.obstacle_distance_mm, "mm")
+        if self.colour == "paper_rgb" and self.spectrum.wavelengths_nm.shape[0] != 3:
+            raise ConfigError(
+                "colour = 'paper_rgb' needs exactly three wavelengths (R, G, B), got "
+                f"{self.spectrum.wavelengths_nm.shape[0]}"
+            )
+
+    # ----------------------------------------------------------------------------- build
+
+    @classmethod
+    def build(
+        cls,
+        aperture: ObstacleAperture,
+        *,
+        focal_length_mm: float,
+        obstacle_distance_mm: float,
+        npix: int = 512,
+        pixel_scale_deg: float | None = None,
+        aperture_npix: int = 256,
+        window_mm: float | None = None,
+        colour: str = "paper_rgb",
+        masking: str = "fixed",
+        wavelengths_nm: Any = None,
+        max_light_angle_deg: float = 0.0,
+        propagation: str = "fraunhofer",
+        method: str = "auto",
+        spectral: str = "exact",
+        reference_wavelength_nm: float = 575.0,
+        illuminant: str = "E",
+        colourspace: str = "sRGB",
+    ) -> KakimotoGlare:
+        """Choose the sampling for an aperture and validate every choice.
+
+        **Arguments:**
+
+        - `aperture`: eye or camera aperture (see :class:`ObstacleAperture`).
+        - `focal_length_mm`: pupil-to-retina / lens-to-sensor distance ``f`` (mm).
+        - `obstacle_distance_mm`: ``d_o`` (mm, >= 0), e.g. ~8 mm from lashes to the
+          pupil of an eye, or the distance of a filter in front of a camera's stop.
+        - `npix`, `pixel_scale_deg`: the output grid; without a pixel scale the FFT's
+          native scale at the shortest computed wavelength is used.
+        - `aperture_npix`, `window_mm`: the aperture raster; the window defaults to
+          the pupil's extent plus two pixels on each side.
+        - `colour`: ``"paper_rgb"`` (R, G, B = monochromatic PSFs at `wavelengths_nm`,
+          default 680 / 530 / 460 nm, in that order) or ``"spectral"`` (`wavelengths_nm`
+          integrated to linear RGB by `Spectrum`, default ``"380:770:32"``; a single
+          wavelength gives a monochrome PSF).
+        - `masking`: ``"fixed"`` (eq. 5) or ``"position"`` (eq. 3, sec. 4.2).
+        - `max_light_angle_deg`: largest light angle (deg) the model will see; it sets
+          :meth:`obstacle_window_mm`. The propagation window is *not* enlarged for it:
+          the grid is the pupil plane and the obstacle is translated across it, so
+          ``t_o P`` stays inside the pupil for any shift and the intensity does not
+          depend on where the field sits in the window. Enlarging the window would only
+          coarsen the raster.
+        - `propagation`, `method`, `spectral`, `reference_wavelength_nm`, `illuminant`,
+          `colourspace`: as for :meth:`~invglare.models.aperture_psf.AperturePSF.build`
+          (`spectral` applies to ``colour="spectral"``).
+
+        **Raises:** `PhysicsRangeError` for a pupil larger than `window_mm`, a negative
+        obstacle distance, or a sampling that would alias; `ConfigError` for an
+        unknown `colour` / `masking` / `method` or an aperture without the three methods.
+
+        **Example:**
+
+        ```python
+        camera = CameraAperture(Diaphragm(6, 8.0, 50.0),
+                                filter=CrossScreen((0.0, 90.0), 0.2, 0.1))
+        model = KakimotoGlare.build(camera, focal_length_mm=50.0,
+                                    obstacle_distance_mm=20.0, npix=256)
+        rgb = model()                       # (256, 256, 3)
+        psfs = model.batch(jnp.array([[0.0, 0.0], [5.0, 0.0]]))
+        ```
+        """
+        choose("colour", colour, COLOURS)
+        choose("masking", masking, MASKINGS)
+        _check_non_negative("obstacle_distance_mm", obstacle_distance_mm, "mm")
+        _check_non_negative("max_light_angle_deg", max_light_angle_deg, "deg")
+        if not max_light_angle_deg < 90.0:
+            raise PhysicsRangeError(
+                f"max_light_angle_deg must be < 90 deg, got {max_light_angle_deg!r}"
+            )
+        if not isinstance(aperture, ObstacleAperture):
+            raise ConfigError(
+                "the Kakimoto model needs an aperture with pupil_transmission(grid), "
+                "obstacle_transmission(grid, shift_mm) and extent_mm(), got "
+                f"{type(aperture).__name__}"
+            )
+        if colour == "paper_rgb":
+            wl = parse_wavelengths(PAPER_RGB_NM if wavelengths_nm is None else wavelengths_nm)
+            if wl.shape != (3,):
+                raise ConfigError(
+                    f"colour = 'paper_rgb' takes three wavelengths (R, G, B), got {wl.tolist()}"
+                )
+            spectrum = Spectrum.build(wl, illuminant=illuminant, colourspace=colourspace)
+            # Three exact transforms on one output grid: the sampling is chosen at the
+            # shortest wavelength, so the FFT-native pixel scale (when none is given) stays
+            # alias-free for all three.
+            sampling = Spectrum.build(np.sort(wl), illuminant=illuminant, colourspace=colourspace)
+        else:
+            wl = parse_wavelengths(
+                DEFAULT_WAVELENGTHS if wavelengths_nm is None else wavelengths_nm
+            )
+            kwargs = dict(
+                spectral=spectral,
+                reference_wavelength_nm=reference_wavelength_nm,
+                illuminant=illuminant,
+                colourspace=colourspace,
+            )
+            spectrum = Spectrum.build(wl, **kwargs)
+            sampling = spectrum if spectral == "scaled" else Spectrum.build(np.sort(wl), **kwargs)
+        propagator = build_propagator(
+            float(aperture.extent_mm()),
+            sampling,
+            focal_length_mm=focal_length_mm,
+            npix=npix,
+            pixel_scale_deg=pixel_scale_deg,
+            aperture_npix=aperture_npix,
+            window_mm=window_mm,
+            propagation=propagation,
+            method=method,
+        )
+        # Apertures whose rasters have data-dependent static shapes (the eye's local stamps)
+        # fix them for this grid here, so that the model can be jitted and differentiated.
+        fix_windows = getattr(aperture, "with_stamp_windows", None)
+        if callable(fix_windows):
+            aperture = fix_windows(propagator.grid)
+        return cls(
+            aperture=aperture,
+            propagator=propagator,
+            spectrum=spectrum,
+            obstacle_distance_mm=obstacle_distance_mm,
+            masking=masking,
+            colour=colour,
+            max_light_angle_deg=float(max_light_angle_deg),
+        )
+
+    # ----------------------------------------------------------------------------- fields
+
+    def obstacle_shift_mm(self, light_angle_deg: Float[ArrayLike, " 2"]) -> Float[Array, " 2"]:
+        """Translation (mm) of the obstacle image over the pupil, ``-d_o tan(angle)``."""
+        angle = _float(light_angle_deg)
+        return -self.obstacle_distance_mm * jnp.tan(jnp.deg2rad(angle))
+
+    def field(self, light_angle_deg: Float[ArrayLike, " 2"] = (0.0, 0.0)) -> Float[Array, "n n"]:
+        """The masked obstacle ``t_o P`` on the propagator's grid, for a light at that angle.
+
+        With ``masking="fixed"`` the angle is ignored (eq. 5).
+        """
+        grid = self.propagator.grid
+        pupil = self.aperture.pupil_transmission(grid)
+        if self.masking == "fixed":
+            shift = jnp.zeros(2, dtype=pupil.dtype)
+        else:
+            shift = self.obstacle_shift_mm(light_angle_deg)
+        return self.aperture.obstacle_transmission(grid, shift) * pupil
+
+    def _psf(
+        self, field: Float[Array, "n n"]
+    ) -> Float[Array, "npix npix"] | Float[Array, "npix npix 3"]:
+        def monochrome(wavelength_nm):
+            return self.propagator(field, wavelength_nm)
+
+        if self.colour == "paper_rgb":
+            # R, G, B in the order of the spectrum's wavelengths; channels last.
+            return jnp.moveaxis(jax.vmap(monochrome)(self.spectrum.wavelengths_nm), 0, -1)
+        return self.spectrum.integrate(monochrome)
+
+    # ----------------------------------------------------------------------------- outputs
+
+    def __call__(
+        self, light_angle_deg: Float[ArrayLike, " 2"] = (0.0, 0.0)
+    ) -> Float[Array, "npix npix"] | Float[Array, "npix npix 3"]:
+        """Glare PSF for a light at `light_angle_deg` = (x, y) deg, centred on the output grid.
+
+        **Returns:** ``(npix, npix, 3)`` for RGB, ``(npix, npix)`` for a single
+        wavelength. The PSF is centred at ``(npix // 2, npix // 2)`` whatever the angle:
+        place it at the light's image position when compositing.
+
+        **Example:**
+
+        ```python
+        psf = model((3.0, -1.0))   # light 3 deg right and 1 deg down
+        ```
+        """
+        angle = _float(light_angle_deg)
+        _check_angles(angle, batched=False)
+        return self._psf(self.field(angle))
+
+    def batch(
+        self, light_angles_deg: Float[ArrayLike, "K 2"], batch_size: int | None = None
+    ) -> Float[Array, "K npix npix"] | Float[Array, "K npix npix 3"]:
+        """Glare PSFs for many light directions in one call (``vmap`` over the angles).
+
+        **Arguments:**
+
+        - `light_angles_deg`: ``(K, 2)`` angles (deg), as for :meth:`__call__`.
+        - `batch_size`: if given, the angles are processed `batch_size` at a time
+          (``lax.map``), bounding memory at ``batch_size`` fields and PSFs.
+
+        With ``masking="fixed"`` every PSF is the same, computed once and broadcast.
+
+        **Example:**
+
+        ```python
+        angles = jnp.stack([jnp.linspace(-10, 10, 64), jnp.zeros(64)], axis=-1)
+        psfs = eqx.filter_jit(model.batch)(angles)   # (64, npix, npix, 3)
+        ```
+        """
+        angles = _float(light_angles_deg)
+        _check_angles(angles, batched=True)
+        if self.masking == "fixed":
+            psf = self._psf(self.field())
+            return jnp.broadcast_to(psf, (angles.shape[0], *psf.shape))
+
+        def one(angle):
+            return self._psf(self.field(angle))
+
+        if batch_size is None:
+            return jax.vmap(one)(angles)
+        return jax.lax.map(one, angles, batch_size=int(batch_size))
+
+    # ----------------------------------------------------------------------------- helpers
+
+    def central_spot_radius_px(self) -> Float[Array, ""]:
+        """Radius (output pixels) of the central spot: first Airy zero at the reddest wavelength.
+
+        ``1.2197 * lambda_max / D_eq`` with ``D_eq`` the diameter of the disk with the
+        pupil's area (``sum(P) * pitch²``), divided by the output pixel scale. Meant
+        for splitting off the central spot before tone mapping
+        (:func:`invglare.render.kakimoto_glare_layers`); ``float()`` it there.
+
+        **Example:**
+
+        ```python
+        layers = kakimoto_glare_layers(model(), float(model.central_spot_radius_px()))
+        ```
+        """
+        grid = self.propagator.grid
+        pupil = self.aperture.pupil_transmission(grid)
+        area_mm2 = jnp.sum(pupil) * grid.pitch_mm**2
+        d_eq_mm = 2.0 * jnp.sqrt(area_mm2 / math.pi)
+        lam_mm = jnp.max(self.spectrum.wavelengths_nm) * 1e-6
+        return AIRY_FIRST_ZERO * lam_mm / d_eq_mm / self.propagator.output.pixel_scale_rad
+
+    def transmitted_fraction(
+        self, light_angle_deg: Float[ArrayLike, " 2"] = (0.0, 0.0)
+    ) -> Float[Array, ""]:
+        """Fraction of the power through the pupil that also passes the obstacle.
+
+        ``sum |t_o P|² / sum |P|²`` for a light at `light_angle_deg`. The PSFs are
+        normalised to unit energy, so a renderer that wants a light partly hidden
+        behind lashes to look dimmer multiplies by this.
+        """
+        pupil = self.aperture.pupil_transmission(self.propagator.grid)
+        field = self.field(light_angle_deg)
+        return jnp.sum(field**2) / jnp.maximum(jnp.sum(pupil**2), 1e-30)
+
+    def obstacle_window_mm(self) -> Float[Array, ""]:
+        """Width (mm) of the obstacle plane seen by lights up to `max_light_angle_deg`.
+
+        ``window + 2 d_o tan(max angle)``: an obstacle defined by a finite image (the
+        paper's eyelash silhouette, "wider than it is shown") must cover this square
+        for ``masking="position"`` to see obstacle everywhere it looks.
+        """
+        shift = self.obstacle_distance_mm * math.tan(math.radians(self.max_light_angle_deg))
+        return self.propagator.grid.width_mm + 2.0 * shift
+
+
+def kakimoto_to_config(model: KakimotoGlare) -> dict[str, Any]:
+    """The model-level choices of a Kakimoto model, as plain values.
+
+    The keys are the keyword arguments of :meth:`KakimotoGlare.build`, so
+    ``KakimotoGlare.build(aperture, **kakimoto_to_config(model))`` rebuilds the same
+    model (the aperture is written by its own builder, e.g.
+    :func:`invglare.aperture.camera.camera_to_config`). The output pixel scale and
+    window are written explicitly, even when they were defaults.
+
+    **Example:**
+
+    ```python
+    cfg = kakimoto_to_config(model)   # {"masking": "fixed", "colour": "paper_rgb", ...}
+    ```
+    """
+    prop = model.propagator
+    spec = model.spectrum
+    return {
+        "focal_length_mm": float(prop.focal_length_mm),
+        "obstacle_distance_mm": float(model.obstacle_distance_mm),
+        "masking": model.masking,
+        "colour": model.colour,
+        "wavelengths_nm": [float(w) for w in np.asarray(spec.wavelengths_nm, dtype=float)],
+        "max_light_angle_deg": float(model.max_light_angle_deg),
+        "npix": int(prop.output.npix),
+        "pixel_scale_deg": float(prop.output.pixel_scale_deg),
+        "aperture_npix": int(prop.grid.npix),
+        "window_mm": float(prop.grid.width_mm),
+        "propagation": prop.propagation,
+        "method": prop.method,
+        "spectral": spec.spectral,
+        "reference_wavelength_nm": float(spec.reference_wavelength_nm),
+        "illuminant": spec.illuminant,
+        "colourspace": spec.colourspace,
+    }
