@@ -132,7 +132,8 @@ def build_model(
     model.finish()
 
     output = Section(config.get("output", {}), "output")
-    sampling["npix"] = output.get("npix", int, 512) if npix is None else npix
+    out_npix = output.get("npix", int, 512)
+    sampling["npix"] = out_npix if npix is None else npix
     scale = output.get("pixel_scale_deg", float, None)
     sampling["pixel_scale_deg"] = scale if pixel_scale_deg is None else pixel_scale_deg
     output.finish()

@@ -1,0 +1,114 @@
+"""Model configs: every kind builds, round-trips through model_to_config, and bad keys fail."""
+
+from __future__ import annotations
+
+import copy
+
+import numpy as np
+import pytest
+
+from invglare.aperture.camera import CameraAperture
+from invglare.aperture.eye import EyeAperture
+from invglare.errors import ConfigError
+from invglare.io.config import load_toml
+from invglare.io.model_config import build_model, model_to_config
+from invglare.models.aperture_psf import AperturePSF
+from invglare.models.kakimoto import KakimotoGlare
+
+EYE = {
+    "model": {
+        "kind": "eye",
+        "aperture_npix": 64,
+        "eye": {
+            "seed": 3,
+            "pupil": {"diameter_mm": 3.0},
+            "lids": {"upper_opening_mm": 1.3},
+            "lashes_upper": {"count": 12, "length_mm": 2.0, "thickness_mm": 0.06},
+        },
+    },
+    "output": {"npix": 64},
+    "spectrum": {"wavelengths_nm": 550},
+}
+
+CAMERA = {
+    "model": {
+        "kind": "camera",
+        "aperture_npix": 64,
+        "obstacle_distance_mm": 5.0,
+        "colour": "paper_rgb",
+        "camera": {
+            "diaphragm": {"n_blades": 6, "f_number": 8.0, "focal_length_mm": 50.0},
+            "cross_screen": {"angles_deg": [0.0, 60.0], "spacing_mm": 0.4, "duty_cycle": 0.1},
+        },
+    },
+    "output": {"npix": 64},
+}
+
+
+def test_eye_config_builds_a_kakimoto_model_with_eye_defaults():
+    model = build_model(EYE)
+    assert isinstance(model, KakimotoGlare)
+    assert isinstance(model.aperture, EyeAperture)
+    # Eye defaults: 17 mm focal length, lashes 8 mm in front of the pupil, fixed mask.
+    assert float(model.propagator.focal_length_mm) == 17.0
+    assert float(model.obstacle_distance_mm) == 8.0
+    assert model.masking == "fixed"
+    psf = np.asarray(model())
+    assert psf.shape == (64, 64)
+    assert np.all(np.isfinite(psf))
+    assert 0.9 < psf.sum() <= 1.0 + 1e-5
+
+
+def test_camera_config_takes_the_diaphragm_focal_length_and_paper_rgb():
+    model = build_model(CAMERA)
+    assert isinstance(model.aperture, CameraAperture)
+    assert float(model.propagator.focal_length_mm) == 50.0
+    np.testing.assert_allclose(model.spectrum.wavelengths_nm, [680.0, 530.0, 460.0])
+    psf = np.asarray(model())
+    assert psf.shape == (64, 64, 3)
+    # paper_rgb: each channel is a unit-energy monochromatic PSF.
+    assert np.all(psf.sum(axis=(0, 1)) > 0.9)
+
+
+@pytest.mark.parametrize("config", [EYE, CAMERA], ids=["eye", "camera"])
+def test_kakimoto_configs_round_trip_exactly(config):
+    model = build_model(config)
+    again = build_model(model_to_config(model))
+    np.testing.assert_array_equal(np.asarray(again()), np.asarray(model()))
+    assert model_to_config(again) == model_to_config(model)
+
+
+def test_bundled_eye_example_round_trips():
+    model = build_model(load_toml("examples/eye_daylight.toml"), npix=64)
+    assert model_to_config(build_model(model_to_config(model))) == model_to_config(model)
+
+
+def test_aperture_kind_still_needs_shapes_and_rejects_eye_keys():
+    config = copy.deepcopy(EYE)
+    config["model"]["kind"] = "aperture"
+    config["model"]["focal_length_mm"] = 17.0
+    with pytest.raises(ConfigError, match="shapes"):
+        build_model(config)
+    config["model"]["shapes"] = [{"kind": "disk", "diameter_mm": 3.0}]
+    with pytest.raises(ConfigError, match="unknown key 'eye'"):
+        build_model(config)
+    del config["model"]["eye"]
+    assert isinstance(build_model(config), AperturePSF)
+
+
+@pytest.mark.parametrize(
+    ("edit", "match"),
+    [
+        (lambda c: c["model"].pop("eye"), "needs the key 'eye'"),
+        (lambda c: c["model"].update(masking="sliding"), "masking = 'sliding' is not one of"),
+        (lambda c: c["model"].update(colour="cmyk"), "colour = 'cmyk' is not one of"),
+        (lambda c: c["model"].update(shapes=[]), "unknown key 'shapes'"),
+        (lambda c: c["model"]["eye"].update(iris=1), "unknown key 'iris'"),
+        (lambda c: c["model"].update(kind="telescope"), "valid kinds: aperture, eye, camera"),
+    ],
+)
+def test_bad_kakimoto_configs_name_the_key(edit, match):
+    config = copy.deepcopy(EYE)
+    edit(config)
+    with pytest.raises(ConfigError, match=match):
+        build_model(config)
