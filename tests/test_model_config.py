@@ -112,3 +112,26 @@ def test_bad_kakimoto_configs_name_the_key(edit, match):
     edit(config)
     with pytest.raises(ConfigError, match=match):
         build_model(config)
+
+
+def test_veiling_kind_builds_through_the_model_config_and_round_trips():
+    config = load_toml("examples/veiling_ghosts.toml")
+    model = build_model(config, base_dir="examples")
+    image = np.asarray(model((1.0, 0.5)))
+    assert np.all(np.isfinite(image)) and image.max() > 0
+    again = build_model(model_to_config(model), base_dir="examples")
+    np.testing.assert_array_equal(np.asarray(again((1.0, 0.5))), image)
+
+
+def test_psf_command_reports_the_veiling_glare_index(tmp_path):
+    from typer.testing import CliRunner
+
+    from invglare.cli import app
+    from invglare.io.exr import read_exr
+
+    out = tmp_path / "veil.exr"
+    result = CliRunner().invoke(app, ["psf", "examples/veiling_ghosts.toml", "--out", str(out)])
+    assert result.exit_code == 0, result.output
+    header = read_exr(out).attrs
+    assert 0.0 < header["veilingGlareIndex"] < 1.0
+    assert header["vgiSpotRadiusDeg"] == 0.5

@@ -11,6 +11,9 @@ from invglare.errors import NumericalError
 
 log = logging.getLogger("invglare")
 
+#: Radius (deg) of the black spot of the ISO 9358 veiling glare index reported for veiling models.
+VGI_SPOT_RADIUS_DEG = 0.5
+
 NORMALISATION = "fraction of the transmitted power per pixel (Y sums to 1 over the full plane)"
 
 
@@ -28,6 +31,7 @@ def run_psf(
     from invglare.io.config import load_toml
     from invglare.io.exr import write_exr
     from invglare.io.model_config import build_model, model_to_config
+    from invglare.models.veiling import VeilingGlare
     from invglare.optics.spectral import parse_wavelengths
 
     config = load_toml(config_path)
@@ -43,6 +47,9 @@ def run_psf(
     psf = np.asarray(jax.jit(lambda m: m())(model))
     if not np.all(np.isfinite(psf)):
         raise NumericalError(f"the PSF of {config_path} has non-finite values")
+    if isinstance(model, VeilingGlare):
+        _write_veiling(model, psf, out, half, png)
+        return
     prop = model.propagator
     scale = float(prop.output.pixel_scale_deg)
     energy = float(psf.sum() if psf.ndim == 2 else _luminance(psf).sum())
@@ -66,6 +73,42 @@ def run_psf(
         prop.propagation,
         prop.method.upper(),
         energy,
+    )
+    if png is not None:
+        from invglare.io.images import write_png
+
+        write_png(png, log_preview(psf))
+        log.info("wrote %s (log-scaled preview, 6 decades)", png)
+
+
+def _write_veiling(model, psf: np.ndarray, out: Path, half: bool, png: Path | None) -> None:
+    """A veiling-glare image has no propagator: its header carries the glare index instead."""
+    from invglare.io.exr import write_exr
+    from invglare.io.model_config import model_to_config
+
+    vgi = float(model.veiling_glare_index(spot_radius_deg=VGI_SPOT_RADIUS_DEG))
+    write_exr(
+        out,
+        psf,
+        pixel_scale_deg=float(model.pixel_scale_deg),
+        config=model_to_config(model),
+        attrs={
+            "psfNormalisation": "fraction of the light's flux per pixel (veiling glare only)",
+            "veilingGlareIndex": vgi,
+            "vgiSpotRadiusDeg": VGI_SPOT_RADIUS_DEG,
+        },
+        half=half,
+    )
+    log.info(
+        "wrote %s: %dx%d Y, %.4g deg/px, %d ghosts, veiling glare index %.3g %% "
+        "(ISO 9358, spot radius %.2g deg)",
+        out,
+        psf.shape[0],
+        psf.shape[1],
+        float(model.pixel_scale_deg),
+        model.ghosts.n_ghosts,
+        100 * vgi,
+        VGI_SPOT_RADIUS_DEG,
     )
     if png is not None:
         from invglare.io.images import write_png
