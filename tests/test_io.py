@@ -678,3 +678,14 @@ def test_srgb_round_trip_and_dtypes():
     x32 = x.astype(np.float32).reshape(3, 667, 1)
     assert encode_srgb(x32).dtype == np.float32 and encode_srgb(x32).shape == x32.shape
     assert decode_srgb(np.array([0, 255])).dtype == np.float64
+
+
+def test_exr_float_attributes_keep_full_precision_in_legacy_print_mode(tmp_path):
+    # colour-science switches numpy to legacy printing, which rounds str(float32) to 6 digits.
+    old = np.get_printoptions()
+    np.set_printoptions(legacy="1.13")
+    try:
+        write_exr(tmp_path / "a.exr", np.ones((4, 4), np.float32), pixel_scale_deg=0.015957769)
+        assert read_exr(tmp_path / "a.exr").pixel_scale_deg == 0.015957769
+    finally:
+        np.set_printoptions(**old)

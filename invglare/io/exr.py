@@ -131,7 +131,9 @@ def _short_float(value: float) -> float:
     """
     f32 = np.float32(value)
     if math.isfinite(value) and float(f32) == value:
-        return float(str(f32))
+        # Not str(f32): numpy's legacy print mode (which colour-science switches on) rounds
+        # it to 6 significant digits.
+        return float(np.format_float_positional(f32, unique=True))
     return float(value)
 
 

@@ -1,0 +1,368 @@
+"""Golden regression (`invglare regress`) and the regression fit of the eye to the CIE GSF.
+
+The whole golden suite runs once (a module fixture, about a minute of CPU, mostly XLA
+compilation); the perturbation, CLI and update tests reuse its compiled programs or the
+cheapest case. The CIE tests use a
+tiny setup (a 96-sample pupil, 36² output pixels) that compiles once for all of them.
+"""
+
+import json
+import math
+import shutil
+from pathlib import Path
+
+import jax
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from invglare.cli import app
+from invglare.errors import ConfigError, InputDataError, PhysicsRangeError
+from invglare.io.exr import read_exr, write_exr
+from invglare.io.model_config import model_to_config
+from invglare.reference.cie_fit import (
+    CieFitSetup,
+    Population,
+    RadialBins,
+    build_fit_model,
+    cie_target,
+    fit_cie,
+    fit_radial_gsf,
+    model_gsf,
+    parse_cie_spec,
+    write_cie_report,
+)
+from invglare.reference.regress import (
+    CASES,
+    DEFAULT_TOLERANCE,
+    Case,
+    compare_psfs,
+    compute_case,
+    golden_path,
+    log_scaled,
+    run_suite,
+    select_cases,
+    update_goldens,
+    write_report,
+)
+
+GOLDEN = Path(__file__).resolve().parent / "golden"
+runner = CliRunner()
+CASE = {c.name: c for c in CASES}
+
+
+def invoke(*args):
+    return runner.invoke(app, [str(a) for a in args])
+
+
+def perturbed(name: str, edit, suffix: str = "perturbed"):
+    """A copy of case `name` whose config `edit` changes in place (same golden file name)."""
+    import copy
+    import dataclasses
+
+    case = CASE[name]
+    config = copy.deepcopy(case.config)
+    edit(config)
+    return dataclasses.replace(case, config=config, description=f"{case.description} ({suffix})")
+
+
+@pytest.fixture(scope="module")
+def suite():
+    return run_suite(golden_dir=GOLDEN, progress=False)
+
+
+# ------------------------------------------------------------------------------ the suite
+
+
+def test_every_case_matches_its_golden(suite):
+    assert [r.case.name for r in suite] == [c.name for c in CASES]
+    failing = {r.case.name: r.failures for r in suite if not r.passed}
+    assert not failing
+    # The stored headers describe the models the registry builds now.
+    assert {r.case.name: r.config_changes for r in suite if r.config_changes} == {}
+
+
+def test_suite_covers_every_model_and_mode(suite):
+    seen = set()
+    for r in suite:
+        table = r.case.config["model"]
+        prop = r.model.propagator
+        seen.add((table["kind"], "method", prop.method))
+        seen.add((table["kind"], "propagation", prop.propagation))
+        spec = r.model.spectrum
+        seen.add((table["kind"], "spectral", spec.spectral if spec.is_spectral else "mono"))
+        for key in ("masking", "colour"):
+            if key in table:
+                seen.add((table["kind"], key, table[key]))
+        if table["kind"] == "camera":
+            seen.add(("camera", "filter", "cross_screen" in table["camera"]))
+    expected = {
+        ("aperture", "method", "fft"),
+        ("aperture", "method", "mft"),
+        ("aperture", "propagation", "fresnel"),
+        ("aperture", "spectral", "mono"),
+        ("aperture", "spectral", "exact"),
+        ("aperture", "spectral", "scaled"),
+        ("eye", "masking", "fixed"),
+        ("eye", "masking", "position"),
+        ("eye", "colour", "paper_rgb"),
+        ("eye", "colour", "spectral"),
+        ("camera", "filter", True),
+    }
+    assert expected <= seen
+    assert all(max(r.psf.shape[:2]) <= 128 for r in suite)
+
+
+def test_report_table_and_difference_images(suite, tmp_path):
+    path = write_report(suite, tmp_path, golden_dir=GOLDEN)
+    text = path.read_text()
+    assert "**all cases pass**" in text
+    assert "log-scaled" in text and "temporal" in text
+    for r in suite:
+        assert f"[{r.case.name}](regression/{r.case.name}.png) | pass |" in text
+        png = tmp_path / "regression" / f"{r.case.name}.png"
+        assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_one_percent_larger_pupil_fails(suite):
+    def wider(config):
+        config["model"]["shapes"][0]["diameter_mm"] *= 1.01
+
+    def wider_eye(config):
+        config["model"]["eye"]["pupil"]["diameter_mm"] *= 1.01
+
+    cases = [
+        perturbed("aperture_mft_mono", wider),
+        perturbed("eye_position_spectral", wider_eye),
+        perturbed("aperture_fft_mono", wider),
+    ]
+    mft, eye, fft = run_suite(golden_dir=GOLDEN, cases=cases, progress=False)
+    for r in (mft, eye):
+        assert r.status == "fail", r.case.name
+        # Far outside float32 round-off, not a borderline call.
+        assert r.metrics.rel_l2 > 100 * r.case.tolerance.rel_l2
+        assert r.metrics.ssim_log < r.case.tolerance.ssim_log
+        assert any(f.startswith("rel_l2") for f in r.failures)
+        assert r.config_changes  # the header shows what moved
+    # On the FFT's native grid the window grows with the pupil: the same array at a 1 %
+    # finer pixel scale. The pixels pass; the sampling does not.
+    assert fft.status == "fail"
+    assert fft.failures == [f for f in fft.failures if f.startswith("pixel scale")] != []
+
+
+def test_golden_header_rebuilds_its_model():
+    # The header alone (the full config as model_to_config writes it) reproduces the PSF.
+    case = CASE["aperture_mft_mono"]
+    golden = read_exr(golden_path(GOLDEN, case))
+    assert golden.attrs["regressionCase"] == case.name
+    assert golden.config != case.config  # every default made explicit
+    from_header = Case(case.name, "rebuilt from the golden's header", golden.config)
+    psf, model = compute_case(from_header)
+    metrics = compare_psfs(golden.data, psf, golden.pixel_scale_deg)
+    assert metrics.failures(case.tolerance) == []
+    assert model_to_config(model) == golden.config
+
+
+# ------------------------------------------------------------------------------ metrics
+
+
+def _gauss(n=128, sigma=3.0):
+    # 128 px like the suite's PSFs: the jitted encircled energy is reused, not recompiled.
+    y, x = np.mgrid[:n, :n] - n // 2
+    g = np.exp(-(x * x + y * y) / (2 * sigma**2))
+    return g / g.sum()
+
+
+def test_metrics_of_a_known_difference():
+    ref = _gauss()
+    same = compare_psfs(ref, ref.copy(), 0.01)
+    assert (same.rel_l2, same.max_err, same.ee_diff) == (0.0, 0.0, 0.0)
+    assert same.ssim_log == pytest.approx(1.0) and math.isinf(same.psnr_db)
+    m = compare_psfs(ref, 1.01 * ref, 0.01)
+    assert m.rel_l2 == pytest.approx(0.01, rel=1e-9)
+    assert m.max_err == pytest.approx(0.01, rel=1e-9)
+    mse = np.mean((0.01 * ref) ** 2)
+    assert m.psnr_db == pytest.approx(10 * np.log10(ref.max() ** 2 / mse), rel=1e-9)
+    # 1 % more light everywhere: the encircled fraction grows by 1 % of itself (up to
+    # 0.01 at the largest radius, to the float32 precision of the encircled energy).
+    assert m.ee_diff == pytest.approx(0.01, rel=1e-4)
+    assert m.failures(DEFAULT_TOLERANCE)
+    with pytest.raises(InputDataError, match="shape"):
+        compare_psfs(ref, ref[:-1], 0.01)
+
+
+def test_log_ssim_sees_glare_far_below_the_peak():
+    # A faint streak at 1e-6 of the peak: invisible to the linear metrics, which stay
+    # inside the default tolerance, but a clear structural change in the log image.
+    ref = _gauss() + 1e-9
+    new = ref.copy()
+    new[64, 72:] += 1e-6 * ref.max()
+    m = compare_psfs(ref, new, 0.01)
+    assert m.max_err < DEFAULT_TOLERANCE.max_err
+    assert m.ssim_log < DEFAULT_TOLERANCE.ssim_log
+    assert log_scaled(np.array([1.0, 1e-3, 1e-9]), 1.0).tolist() == pytest.approx([1.0, 0.5, 0.0])
+
+
+def test_unknown_case_is_named():
+    with pytest.raises(ConfigError, match=r"'nope'.*aperture_fft_mono"):
+        select_cases(["nope"])
+    result = invoke("regress", "nope")
+    assert result.exit_code == 2
+    assert "nope" in result.output
+
+
+# ------------------------------------------------------------------------------ CLI / update
+
+
+@pytest.fixture
+def golden_copy(tmp_path):
+    folder = tmp_path / "golden"
+    folder.mkdir()
+    shutil.copy(golden_path(GOLDEN, CASE["aperture_fft_mono"]), folder)
+    return folder
+
+
+def _scale_golden(folder: Path, factor: float) -> None:
+    path = golden_path(folder, CASE["aperture_fft_mono"])
+    g = read_exr(path)
+    attrs = {k: v for k, v in g.attrs.items() if k != "invglareVersion"}  # write_exr's own
+    write_exr(path, g.data * factor, pixel_scale_deg=g.pixel_scale_deg,
+              wavelengths_nm=g.wavelengths_nm, config=g.config, attrs=attrs)  # fmt: skip
+
+
+def test_cli_fails_naming_the_case(golden_copy, tmp_path):
+    _scale_golden(golden_copy, 1.0001)  # 1e-4 relative: 5x the L2 tolerance
+    out = tmp_path / "reports"
+    result = invoke("regress", "aperture_fft_mono", "--golden-dir", golden_copy, "--out-dir", out)
+    assert result.exit_code == 1
+    assert "FAIL aperture_fft_mono: rel_l2" in result.output
+    assert "1 of 1 case(s) failed: aperture_fft_mono" in result.output
+    assert "| FAIL |" in (out / "regression.md").read_text()
+    assert (out / "regression" / "aperture_fft_mono.png").is_file()
+
+
+def test_cli_missing_golden_says_how_to_create_it(tmp_path):
+    empty = tmp_path / "golden"
+    empty.mkdir()
+    result = invoke("regress", "aperture_fft_mono", "--golden-dir", empty, "--out-dir", tmp_path)
+    assert result.exit_code == 1
+    assert "--update --reason" in result.output
+
+
+def test_update_needs_a_reason(golden_copy, tmp_path):
+    result = invoke("regress", "--update", "--golden-dir", golden_copy, "--out-dir", tmp_path)
+    assert result.exit_code == 2
+    assert "--reason" in result.output
+    result = invoke("regress", "--reason", "x", "--golden-dir", golden_copy)
+    assert result.exit_code == 2
+    with pytest.raises(ConfigError, match="reason"):
+        update_goldens([], golden_copy, "  ")
+
+
+def test_update_rewrites_and_logs_the_change(golden_copy, tmp_path):
+    _scale_golden(golden_copy, 1.01)
+    args = ["aperture_fft_mono", "--golden-dir", golden_copy, "--out-dir", tmp_path]
+    result = invoke("regress", "--update", "--reason", "new FFT normalisation", *args)
+    assert result.exit_code == 0, result.output
+    log = (golden_copy / "CHANGES.md").read_text()
+    assert "Reason: new FFT normalisation" in log
+    row = next(line for line in log.splitlines() if line.startswith("| aperture_fft_mono"))
+    assert "| failed |" in row
+    # The metrics before the update: the stored PSF was 1 % too bright.
+    assert float(row.split("|")[3]) == pytest.approx(0.0099, rel=0.02)
+    assert invoke("regress", *args).exit_code == 0
+    # Nothing differs any more: a second update rewrites nothing and says so.
+    before = golden_path(golden_copy, CASE["aperture_fft_mono"]).read_bytes()
+    assert invoke("regress", "--update", "--reason", "again", *args).exit_code == 0
+    assert golden_path(golden_copy, CASE["aperture_fft_mono"]).read_bytes() == before
+    assert (
+        "Unchanged (bit-identical, not rewritten): aperture_fft_mono"
+        in (golden_copy / "CHANGES.md").read_text()
+    )
+
+
+# ------------------------------------------------------------------------------ CIE fits
+
+TINY = CieFitSetup(
+    populations=(Population("cornea", 400, 150.5, 0.02, 0.1, 0.045, region_radius_mm=1.6),),
+    aperture_npix=96,
+    npix=36,
+    pixel_scale_deg=0.02,
+    n_bins=6,
+    n_starts=3,
+    max_steps=40,
+)
+TRUTH = {"aperture.particles[0].count": 100.4, "aperture.particles[0].radius_mean_mm": 0.062}
+
+
+def test_fit_recovers_a_synthetic_eye():
+    with jax.enable_x64(True):
+        model, space = build_fit_model(TINY)
+        bins = RadialBins.build(
+            TINY.npix, TINY.pixel_scale_deg, TINY.theta_min_deg, TINY.max_angle_deg(), TINY.n_bins
+        )
+        target = np.asarray(model_gsf(space.apply(model, space.values_from(TRUTH)), bins))
+    result = fit_radial_gsf(target, TINY, label="recovery")
+    for path, value in TRUTH.items():
+        assert result.values[path] == pytest.approx(value, rel=0.02), path
+    assert result.rms_log10 < 0.01
+    # The first start is 50 % off in count and 27 % in radius.
+    assert result.initial_gsf.shape == target.shape
+    assert np.max(np.abs(np.log10(result.initial_gsf / target))) > 0.1
+
+
+def test_cie_fit_runs_and_reports(tmp_path):
+    result = fit_cie(25.0, 0.5, TINY)
+    assert result.theta_deg[0] == pytest.approx(0.11, abs=0.01)
+    assert result.theta_deg[-1] < TINY.max_angle_deg() < TINY.alias_free_deg()
+    assert np.all(np.isfinite(result.residual_log10))
+    # The residual is the log ratio of the model's GSF to the CIE target.
+    np.testing.assert_allclose(
+        result.residual_log10, np.log10(result.model_gsf / result.target_gsf), atol=1e-9
+    )
+    assert result.rms_log10 < 0.5
+    assert 0.0 < result.energy_beyond < 1.0
+    path = write_cie_report([result, result], tmp_path)
+    text = path.read_text()
+    assert "| 25 | 0.5 |" in text and "alias-free" in text
+    assert (path.parent / "cie_A25_p0_5.png").read_bytes()[:4] == b"\x89PNG"
+    assert (path.parent / "cie_all.png").is_file()
+    saved = json.loads((path.parent / "fits.json").read_text())
+    assert saved[0]["values"] == pytest.approx(result.values)
+
+
+def test_cie_target_matches_the_formula_at_pixel_centres():
+    bins = RadialBins.build(36, 0.02, 0.1, 0.34, 6)
+    from invglare.reference.cie import cie_gsf
+
+    values = np.asarray(cie_gsf(bins.pixel_theta_deg.ravel(), 70.0, 1.0, extrapolate=True))
+    for k in (0, 5):
+        pixels = bins.index == k
+        assert cie_target(70.0, 1.0, bins)[k] == pytest.approx(values[pixels].mean(), rel=1e-6)
+
+
+@pytest.mark.parametrize(
+    "spec, error, message",
+    [
+        ("25", ConfigError, "AGE,PIGMENT"),
+        ("25,abc", ConfigError, "AGE,PIGMENT"),
+        ("150,0.5", PhysicsRangeError, "age = 150"),
+        ("25,2", PhysicsRangeError, "pigmentation = 2"),
+    ],
+)
+def test_bad_cie_spec_is_named(spec, error, message):
+    with pytest.raises(error, match=message):
+        parse_cie_spec(spec)
+
+
+def test_bad_cie_setup_and_target():
+    with pytest.raises(PhysicsRangeError, match="theta_max_deg"):
+        CieFitSetup(theta_max_deg=5.0).validate()
+    with pytest.raises(PhysicsRangeError, match="3 pixels"):
+        CieFitSetup(theta_min_deg=0.05).validate()
+    with pytest.raises(ConfigError, match="finite values > 0"):
+        fit_radial_gsf(np.full(TINY.n_bins, np.nan), TINY)
+    with pytest.raises(ConfigError, match="shape"):
+        fit_radial_gsf(np.ones(3), TINY)
+    result = invoke("regress", "--cie", "25;0.5")
+    assert result.exit_code == 2 and "AGE,PIGMENT" in result.output
