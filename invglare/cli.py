@@ -201,60 +201,6 @@ def regress(
     run_regress(cases or [], update, reason, golden_dir, out_dir, list_cases)
 
 
-@app.command()
-@_reports_user_errors
-def sample(
-    config: Annotated[Path, typer.Argument(help="Fit config (TOML), e.g. fits/eye_daylight.toml.")],
-    resume: Annotated[
-        bool, typer.Option("--resume", help="Continue the stored chain (after Ctrl-C or a kill).")
-    ] = False,
-    restart: Annotated[
-        bool, typer.Option("--restart", help="Replace a stored chain instead of continuing it.")
-    ] = False,
-    steps: Annotated[
-        int | None,
-        typer.Option(help="Step limit, stored steps included (default: sample.steps, or 5000)."),
-    ] = None,
-    walkers: Annotated[
-        int | None, typer.Option(help="Walkers: even, >= 2 x parameters (default max(32, 4p)).")
-    ] = None,
-    force: Annotated[
-        bool, typer.Option("--force", help="Sample even if the fit did not converge.")
-    ] = False,
-    moves: Annotated[
-        str | None, typer.Option(help="emcee move: stretch, de, de_snooker, kde or walk.")
-    ] = None,
-    batch_size: Annotated[
-        str | None, typer.Option(help="Walkers per compiled evaluation, or 'auto' (timed).")
-    ] = None,
-    out_dir: Annotated[
-        Path | None, typer.Option(help="Report folder of the fit (default: reports/NAME).")
-    ] = None,
-    progress: Annotated[bool, typer.Option(help="Show a progress bar.")] = True,
-) -> None:
-    """Sample the posterior of a fit with emcee; write reports/NAME/posterior/.
-
-    Starts around the stored fit (reports/NAME/params.json; the fit runs first if
-    there is none), checkpoints every step to posterior/chain.h5, stops once the
-    chain is longer than 50 autocorrelation times or at the step limit, and writes
-    summary.md / summary.json, corner, trace and posterior-predictive plots.
-    """
-    from invglare.commands.sample import run_sample
-
-    run_sample(
-        config,
-        resume=resume,
-        restart=restart,
-        steps=steps,
-        walkers=walkers,
-        force=force,
-        moves=moves,
-        batch_size=batch_size,
-        out_dir=out_dir,
-        progress=progress,
-    )
-
-
 def main() -> None:
     app()
 
