@@ -91,9 +91,14 @@ def psf(
 def render(
     scene: Annotated[Path, typer.Argument(help="Linear HDR scene (EXR, with pixelScaleDeg).")],
     model: Annotated[Path, typer.Option("--model", "-m", help="Model config (TOML).")],
-    out: Annotated[Path, typer.Option("--out", "-o", help="Output .exr (linear) or .png.")] = Path(
-        "glare.png"
-    ),
+    out: Annotated[
+        Path,
+        typer.Option(
+            "--out",
+            "-o",
+            help="Output .exr (linear) or .png; with --frames .mp4, .gif or a folder (EXR frames).",
+        ),
+    ] = Path("glare.png"),
     mode: Annotated[
         str, typer.Option(help="convolve (whole frame) or billboard (bright pixels only).")
     ] = "convolve",
@@ -110,11 +115,39 @@ def render(
         float | None,
         typer.Option("--pixel-scale-deg", help="Scene pixel scale if the EXR lacks one."),
     ] = None,
+    frames: Annotated[
+        int | None,
+        typer.Option(
+            help="Animate: render this many frames of a temporal model (model.kind = "
+            "'temporal'), tone-mapped with the model's own operator."
+        ),
+    ] = None,
+    fps: Annotated[
+        float | None, typer.Option(help="Frame rate of the animation (default: the model's).")
+    ] = None,
 ) -> None:
-    """Render a model's glare onto an HDR scene: EXR stays linear, PNG is tone-mapped."""
+    """Render a model's glare onto an HDR scene: EXR stays linear, PNG is tone-mapped.
+
+    With --frames, a temporal model animates the scene (the eye's pupil, lens, vitreous
+    and lids move frame by frame) into an .mp4, a .gif or a folder of linear EXR frames.
+    A veiling-glare model (lens ghosts) gives each of the --max-bright brightest pixels
+    above --threshold the ghosts of its own direction (--mode does not apply).
+    """
     from invglare.commands.render import run_render
 
-    run_render(scene, model, out, mode, threshold, max_bright, tonemap, exposure, pixel_scale_deg)
+    run_render(
+        scene,
+        model,
+        out,
+        mode,
+        threshold,
+        max_bright,
+        tonemap,
+        exposure,
+        pixel_scale_deg,
+        frames=frames,
+        fps=fps,
+    )
 
 
 @app.command()
@@ -137,18 +170,41 @@ def scene(
 @_reports_user_errors
 def bench(
     cases: Annotated[
-        list[str] | None, typer.Argument(help="Run only cases whose names contain these.")
+        list[str] | None,
+        typer.Argument(help="Run only cases whose names contain these (e.g. psf, eye, fit)."),
     ] = None,
     out_dir: Annotated[Path, typer.Option(help="Where bench.md and bench.json go.")] = Path(
         "reports"
     ),
     sizes: Annotated[str, typer.Option(help="Comma-separated N values.")] = "256,512,1024,2048",
     repeats: Annotated[int, typer.Option(help="Timed repetitions per case.")] = 20,
+    skip: Annotated[
+        list[str] | None,
+        typer.Option(
+            help="Skip cases whose names contain this; repeatable (--skip fit skips the fit "
+            "benchmark). FFT floors always run with the pipelines."
+        ),
+    ] = None,
+    fit_npix: Annotated[int, typer.Option(help="Photo size of the fit benchmark.")] = 128,
+    budget_s: Annotated[
+        float, typer.Option(help="At most this many seconds of timed repeats per case and N.")
+    ] = 20.0,
 ) -> None:
-    """Benchmark the pipelines against the bare FFT floor measured in the same run."""
-    from invglare.bench.runner import run_bench
+    """Benchmark the pipelines against the bare FFT floor measured in the same run.
 
-    run_bench(cases or [], out_dir, [int(s) for s in sizes.split(",")], repeats)
+    Also runs the fit benchmark (invglare's fit against scipy's finite-difference least
+    squares on the same problem, once, not per size) unless skipped.
+    """
+    from invglare.bench.runner import run_bench
+    from invglare.errors import ConfigError
+
+    try:
+        ns = [int(s) for s in sizes.split(",")]
+    except ValueError:
+        raise ConfigError(f"--sizes must be comma-separated integers, got {sizes!r}") from None
+    run_bench(
+        cases or [], out_dir, ns, repeats, skip=skip or [], fit_npix=fit_npix, budget_s=budget_s
+    )
 
 
 @app.command()
@@ -199,6 +255,101 @@ def regress(
     from invglare.commands.regress import run_regress
 
     run_regress(cases or [], update, reason, golden_dir, out_dir, list_cases)
+
+
+@app.command()
+@_reports_user_errors
+def synth(
+    specs: Annotated[
+        list[Path], typer.Argument(help="Synth specs (TOML), e.g. data_synthetic/*.toml.")
+    ],
+    out_dir: Annotated[
+        Path | None, typer.Option(help="Write here instead of next to each spec.")
+    ] = None,
+) -> None:
+    """Synthetic target photos with ground truth: NAME.exr (counts) and NAME.truth.json.
+
+    Poisson and read noise from the spec's seed, clipping at the saturation level; the
+    same spec and seed give identical files.
+    """
+    from invglare.commands.synth import run_synth
+
+    run_synth(specs, out_dir)
+
+
+@app.command()
+@_reports_user_errors
+def fit(
+    config: Annotated[Path, typer.Argument(help="Fit config (TOML), e.g. fits/eye_daylight.toml.")],
+    out_dir: Annotated[
+        Path | None, typer.Option(help="Report folder (default: fit.out_dir or reports/NAME).")
+    ] = None,
+    n_starts: Annotated[int | None, typer.Option(help="Override solver.n_starts.")] = None,
+    max_steps: Annotated[int | None, typer.Option(help="Override solver.max_steps.")] = None,
+    progress: Annotated[bool, typer.Option(help="Show a progress bar.")] = True,
+) -> None:
+    """Fit a glare model to a photo; write report.md, params.json and figures.
+
+    The report folder is replaced as a whole once complete: an interrupted fit
+    leaves no half-written report.
+    """
+    from invglare.commands.fit import run_fit
+
+    run_fit(config, out_dir, n_starts, max_steps, progress)
+
+
+@app.command()
+@_reports_user_errors
+def sample(
+    config: Annotated[Path, typer.Argument(help="Fit config (TOML), e.g. fits/eye_daylight.toml.")],
+    resume: Annotated[
+        bool, typer.Option("--resume", help="Continue the stored chain (after Ctrl-C or a kill).")
+    ] = False,
+    restart: Annotated[
+        bool, typer.Option("--restart", help="Replace a stored chain instead of continuing it.")
+    ] = False,
+    steps: Annotated[
+        int | None,
+        typer.Option(help="Step limit, stored steps included (default: sample.steps, or 5000)."),
+    ] = None,
+    walkers: Annotated[
+        int | None, typer.Option(help="Walkers: even, >= 2 x parameters (default max(32, 4p)).")
+    ] = None,
+    force: Annotated[
+        bool, typer.Option("--force", help="Sample even if the fit did not converge.")
+    ] = False,
+    moves: Annotated[
+        str | None, typer.Option(help="emcee move: stretch, de, de_snooker, kde or walk.")
+    ] = None,
+    batch_size: Annotated[
+        str | None, typer.Option(help="Walkers per compiled evaluation, or 'auto' (timed).")
+    ] = None,
+    out_dir: Annotated[
+        Path | None, typer.Option(help="Report folder of the fit (default: reports/NAME).")
+    ] = None,
+    progress: Annotated[bool, typer.Option(help="Show a progress bar.")] = True,
+) -> None:
+    """Sample the posterior of a fit with emcee; write reports/NAME/posterior/.
+
+    Starts around the stored fit (reports/NAME/params.json; the fit runs first if
+    there is none), checkpoints every step to posterior/chain.h5, stops once the
+    chain is longer than 50 autocorrelation times or at the step limit, and writes
+    summary.md / summary.json, corner, trace and posterior-predictive plots.
+    """
+    from invglare.commands.sample import run_sample
+
+    run_sample(
+        config,
+        resume=resume,
+        restart=restart,
+        steps=steps,
+        walkers=walkers,
+        force=force,
+        moves=moves,
+        batch_size=batch_size,
+        out_dir=out_dir,
+        progress=progress,
+    )
 
 
 def main() -> None:

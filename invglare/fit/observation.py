@@ -248,7 +248,13 @@ class Observation(eqx.Module):
     # ---- prediction
 
     def transform_psf(self, psf: Float[Array, "h w"]) -> Float[Array, "h w"]:
-        """The PSF on the photo's pixel grid: scaled, rotated, blurred by the source, shifted."""
+        """The PSF on the photo's pixel grid: scaled, rotated, blurred by the source, shifted.
+
+        Negative values are set to 0. A PSF still bright where the field ends (a
+        cross-screen filter's streaks run off the frame) rings under the sub-pixel
+        Fourier shift, and a negative mean count is no model of a photo: its pixels
+        read ~0, which no parameter could then explain.
+        """
         psf = jnp.asarray(psf)
         dtype = psf.dtype
         out = scale_psf(psf, self.pixel_scale_ratio.astype(dtype))
@@ -256,7 +262,8 @@ class Observation(eqx.Module):
         kernel = None
         if self.source_radius_px is not None:
             kernel = disk_kernel(psf.shape, self.source_radius_px, dtype)
-        return fourier_shift(out, self.dx_px.astype(dtype), self.dy_px.astype(dtype), kernel)
+        out = fourier_shift(out, self.dx_px.astype(dtype), self.dy_px.astype(dtype), kernel)
+        return jnp.maximum(out, 0.0)
 
     def expected(self, psf: Float[Array, "h w"]) -> Float[Array, "h w"]:
         """Mean counts per pixel before clipping: ``response * (flux * psf' + background)``."""

@@ -420,6 +420,7 @@ def fit(
     batch: str = "vmap",
     progress: Callable[[FitProgress], None] | None = None,
     record_history: bool = True,
+    diagnostics: bool = True,
 ) -> FitResult:
     """Fit the free parameters of `space` to a target photo.
 
@@ -448,6 +449,9 @@ def fit(
     - `progress`: called with a :class:`FitProgress` whenever a start accepts a
       step (from JAX's host callback, while the solve runs).
     - `record_history`: collect the loss history (host callbacks; a little slower).
+    - `diagnostics`: compute the covariance (a Jacobian at the optimum) and the model and
+      residual images. ``False`` skips them (stderr and covariance NaN, images None),
+      which saves compiling two more programs when the result only seeds a later fit.
 
     Fitting in float64 (``jax.enable_x64``) is recommended: the tolerances above
     are near float32's resolution.
@@ -544,12 +548,22 @@ def fit(
     n_steps_total = int(steps_so_far[k])
     converged, message = statuses[k]
 
-    cov, stderr, loss, n_res, s2, note = _covariance(fn_full, best_latent, space, covariance_scale)
     values = space.as_dict(space.from_latent(best_latent))
-    expected, predicted, variance = (np.asarray(a) for a in _predict(fn_full, best_latent))
-    target_arr = np.asarray(fn_full.target)
-    sigma = np.sqrt(variance + 1e-30)
-    residual_map = np.where(np.asarray(fn_full.saturated), 0.0, (target_arr - expected) / sigma)
+    if diagnostics:
+        cov, stderr, loss, n_res, s2, note = _covariance(
+            fn_full, best_latent, space, covariance_scale
+        )
+        expected, predicted, variance = (np.asarray(a) for a in _predict(fn_full, best_latent))
+        target_arr = np.asarray(fn_full.target)
+        sigma = np.sqrt(variance + 1e-30)
+        residual_map = np.where(np.asarray(fn_full.saturated), 0.0, (target_arr - expected) / sigma)
+    else:
+        p_ = space.size
+        cov, stderr = np.full((p_, p_), np.nan), np.full(p_, np.nan)
+        loss = float(stages[-1]["final_loss"][k])
+        shape = tuple(fn_full.target.shape)
+        n_res, s2, note = sum(v.size(shape) for v in fn_full.views), math.nan, ""
+        residual_map = predicted = None
     n_starts_run = len(stages[0]["n_steps"])
     where = f"stage {len(factors)}/{len(factors)} at full resolution" if len(factors) > 1 else ""
     summary = (

@@ -31,6 +31,7 @@ from collections.abc import Mapping
 from typing import Any
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 import numpy as np
 from jax.scipy.special import log_ndtr
@@ -94,11 +95,40 @@ def radial_profile(
     dtype = _dtype(image)
     _, _, r, _ = _offsets(image.shape, centre, dtype)
     dr = max_radius_px / n_bins
-    rk = jnp.asarray(radial_bin_radii(n_bins, max_radius_px), dtype=dtype)
-    w = jnp.maximum(0.0, 1.0 - jnp.abs(r.reshape(1, -1) - rk[:, None]) / dr)
-    den = jnp.sum(w, axis=1)
-    num = w @ image.reshape(-1).astype(dtype)
+    # Bin k's centre sits at u = k; a pixel at u shares itself between bins floor(u) and
+    # floor(u) + 1 with weights 1 - f and f (the tent weights, two per pixel). Scatter-adds
+    # keep this O(pixels): a dense (n_bins, pixels) weight matrix costs n_bins times more
+    # memory and compile time, and under a Jacobian (one copy per parameter) it does not fit.
+    lo, f = _tent_bins((r / dr - 0.5).reshape(-1), n_bins, periodic=False)
+    values = image.reshape(-1).astype(dtype)
+    num = _two_bin_sum(lo, f, values, n_bins, periodic=False)
+    den = _two_bin_sum(lo, f, jnp.ones_like(values), n_bins, periodic=False)
     return jnp.where(den > 0, num / jnp.where(den > 0, den, 1.0), 0.0)
+
+
+def _tent_bins(u: Array, n_bins: int, *, periodic: bool) -> tuple[Array, Array]:
+    """Lower bin index (int, no gradient) and the fraction `f` towards the next bin."""
+    if periodic:
+        u = jnp.remainder(u, n_bins)
+    lo = jnp.floor(jax.lax.stop_gradient(u))
+    return lo.astype(jnp.int32), u - lo
+
+
+def _two_bin_sum(lo: Array, f: Array, values: Array, n_bins: int, *, periodic: bool) -> Array:
+    """``sum`` of ``(1 - f) * values`` into bin `lo` and ``f * values`` into bin ``lo + 1``."""
+    if periodic:
+        # remainder() can round up to exactly n_bins; that is sector 0.
+        lo = jnp.where(lo >= n_bins, lo - n_bins, lo)
+        hi = lo + 1
+        hi = jnp.where(hi >= n_bins, hi - n_bins, hi)
+    else:
+        hi = lo + 1
+        # Negative indices would wrap around (numpy semantics) rather than be dropped.
+        lo = jnp.where(lo < 0, n_bins, lo)
+        hi = jnp.where(hi < 0, n_bins, hi)
+    out = jnp.zeros(n_bins, dtype=values.dtype)
+    out = out.at[lo].add((1.0 - f) * values, mode="drop")
+    return out.at[hi].add(f * values, mode="drop")
 
 
 def _radial_window(r, r_min, r_max):
@@ -134,12 +164,10 @@ def angular_energy(
     x, y, r, ok = _offsets(image.shape, centre, dtype)
     theta = jnp.arctan2(jnp.where(ok, y, 0.0), jnp.where(ok, x, 1.0))
     dth = 2 * math.pi / n_bins
-    tk = jnp.asarray(np.deg2rad(angular_bin_angles_deg(n_bins)), dtype=dtype)
-    d = theta.reshape(1, -1) - tk[:, None]
-    d = jnp.remainder(d + math.pi, 2 * math.pi) - math.pi
-    w = jnp.maximum(0.0, 1.0 - jnp.abs(d) / dth)
+    # Two tent weights per pixel, scatter-added (see radial_profile); sectors wrap around.
+    lo, f = _tent_bins((theta / dth).reshape(-1), n_bins, periodic=True)
     weighted = (image.astype(dtype) * _radial_window(r, r_min, r_max) * ok).reshape(-1)
-    return w @ weighted
+    return _two_bin_sum(lo, f, weighted, n_bins, periodic=True)
 
 
 def halo_ring_radius(

@@ -1,0 +1,89 @@
+"""`invglare sample` end to end: it runs the missing fit, samples, refuses to overwrite, resumes."""
+
+from __future__ import annotations
+
+import json
+import textwrap
+
+import jax
+import numpy as np
+import pytest
+from test_sample import TRUE_D, TRUE_FLUX
+
+from invglare.aperture import Aperture, Disk
+from invglare.fit import Observation
+from invglare.fit.sample import load_chain
+from invglare.models.aperture_psf import AperturePSF
+
+
+@pytest.mark.slow
+def test_sample_command_fits_samples_resumes_and_reports(tmp_path):
+    """`invglare sample` on a 64-px disk photo: runs the missing fit, samples, resumes."""
+    from typer.testing import CliRunner
+
+    from invglare.cli import app
+    from invglare.io.exr import write_exr
+
+    # The plain AperturePSF (unit energy) of the model config, not CollectingPupil.
+    inner = AperturePSF.build(
+        Aperture((Disk(TRUE_D),)), focal_length_mm=17.0, npix=64, pixel_scale_deg=0.0035,
+        aperture_npix=64, window_mm=5.4,
+    )  # fmt: skip
+    obs = Observation(flux=TRUE_FLUX, background=20.0, gain=2.0, read_noise=3.0)
+    photo = np.asarray(obs.sample(jax.random.key(3), inner()))
+    write_exr(tmp_path / "photo.exr", photo.astype(np.float32), pixel_scale_deg=0.0035)
+    (tmp_path / "model.toml").write_text(textwrap.dedent("""
+        [model]
+        kind = "aperture"
+        focal_length_mm = 17.0
+        aperture_npix = 64
+        window_mm = 5.4
+        [[model.shapes]]
+        kind = "disk"
+        diameter_mm = 3.3
+        [spectrum]
+        wavelengths_nm = 550
+        """))  # fmt: skip
+    (tmp_path / "disk.toml").write_text(textwrap.dedent(f"""
+        [fit]
+        out_dir = {str(tmp_path / "out")!r}
+        [target]
+        file = "photo.exr"
+        [model]
+        config = "model.toml"
+        [observation]
+        gain = 2.0
+        read_noise = 3.0
+        [[free]]
+        path = "model.aperture.shapes[0].diameter_mm"
+        lower = 2.0
+        upper = 5.0
+        init = 3.3
+        [[free]]
+        path = "obs.flux"
+        lower = 0.0
+        upper = inf
+        [solver]
+        n_starts = 1
+        covariance_scale = "absolute"
+        [sample]
+        predictive_draws = 8
+        check_every = 20
+        """))  # fmt: skip
+    runner = CliRunner()
+    args = ["sample", str(tmp_path / "disk.toml"), "--walkers", "8", "--batch-size", "8",
+            "--no-progress"]  # fmt: skip
+    r = runner.invoke(app, [*args, "--steps", "60"])
+    assert r.exit_code == 0, r.output
+    post_dir = tmp_path / "out" / "posterior"
+    assert (tmp_path / "out" / "params.json").is_file()  # the fit ran first
+    for f in ("chain.h5", "summary.md", "summary.json", "corner.png", "trace.png",
+              "predictive.png"):  # fmt: skip
+        assert (post_dir / f).is_file(), f
+    assert load_chain(post_dir / "chain.h5").n_steps == 60
+    r = runner.invoke(app, [*args, "--steps", "80"])
+    assert r.exit_code == 2 and "--resume" in r.output
+    r = runner.invoke(app, [*args, "--steps", "80", "--resume"])
+    assert r.exit_code == 0, r.output
+    summary = json.loads((post_dir / "summary.json").read_text())
+    assert summary["n_steps"] == 80 and [x["start_step"] for x in summary["runs"]] == [0, 60]
