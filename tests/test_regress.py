@@ -108,6 +108,8 @@ def test_suite_covers_every_model_and_mode(suite):
         ("eye", "colour", "paper_rgb"),
         ("eye", "colour", "spectral"),
         ("camera", "filter", True),
+        ("temporal", "propagation", "fresnel"),
+        ("temporal", "spectral", "scaled"),
     }
     assert expected <= seen
     assert all(max(r.psf.shape[:2]) <= 128 for r in suite)

@@ -57,6 +57,7 @@ from invglare.aperture.stamps import (
     segments_log_transmission,
     window_half_px,
 )
+from invglare.dynamics.noise import normal, uniform
 from invglare.errors import ConfigError, PhysicsRangeError
 from invglare.optics.sampling import ApertureGrid
 
@@ -184,8 +185,8 @@ def _unit_draws(
     def one(i):
         k_u, k_n = jax.random.split(jax.random.fold_in(key, i))
         return (
-            jax.random.uniform(k_u, (n_uniform,), dtype=dtype),
-            jax.random.normal(k_n, (n_normal,), dtype=dtype),
+            uniform(k_u, (n_uniform,), dtype),
+            normal(k_n, (n_normal,), dtype),
         )
 
     return jax.vmap(one)(jnp.arange(n))
@@ -511,6 +512,10 @@ class Particles(eqx.Module):
       ``mean * exp(spread * z - spread**2 / 2)``, ``z ~ N(0, 1)`` clipped to +-3,
       a log-normal whose mean is `radius_mean_mm` (before clipping).
     - `region_radius_mm`: size of the region (mm, > 0).
+    - `offsets_mm`: optional ``(n_max, 2)`` displacement (mm) added to every drawn
+      centre; None (default) leaves the particles where they were drawn. It is how a
+      moving eye (:mod:`invglare.models.temporal`) carries lens and vitreous particles
+      without changing the draws; not part of the configuration.
     - `stamp_bound_mm`, `stamp_half_px`: static stamp-window overrides.
 
     **Positions.** Cornea cells lie in a thin layer: uniform over a disk of radius
@@ -530,6 +535,7 @@ class Particles(eqx.Module):
     radius_mean_mm: Float[Array, ""] = eqx.field(converter=_float, default=0.01)
     radius_spread: Float[Array, ""] = eqx.field(converter=_float, default=0.3)
     region_radius_mm: Float[Array, ""] = eqx.field(converter=_float, default=2.5)
+    offsets_mm: Float[Array, "n_max 2"] | None = None
     stamp_bound_mm: float | None = eqx.field(static=True, default=None)
     stamp_half_px: int | None = eqx.field(static=True, default=None)
 
@@ -537,6 +543,8 @@ class Particles(eqx.Module):
         _check_choice("particles region", self.region, REGIONS)
         owner = f"{self.region} particles"
         _check_n_max(owner, self.n_max)
+        if self.offsets_mm is not None:
+            _check_finite(f"{owner} offsets_mm", self.offsets_mm, (self.n_max, 2))
         _check_count(owner, self.count, self.n_max)
         _check_range(f"{owner} radius_mean_mm", self.radius_mean_mm, 0.0, lo_open=True, unit="mm")
         _check_range(f"{owner} radius_spread", self.radius_spread, 0.0)
@@ -549,7 +557,12 @@ class Particles(eqx.Module):
         return _unit_draws(self.key, self.n_max, 2, 4, dtype)
 
     def centers_mm(self) -> Float[Array, "n_max 2"]:
-        """Projected particle centres (x, y) in mm."""
+        """Projected particle centres (x, y) in mm, moved by `offsets_mm` when given."""
+        centers = self.drawn_centers_mm()
+        return centers if self.offsets_mm is None else centers + self.offsets_mm
+
+    def drawn_centers_mm(self) -> Float[Array, "n_max 2"]:
+        """Projected centres (x, y) in mm as drawn, without `offsets_mm`."""
         u, z = self._draws()
         big_r = self.region_radius_mm
         if self.region == "cornea":

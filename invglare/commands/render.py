@@ -14,6 +14,10 @@ log = logging.getLogger("invglare")
 
 MODES = ("convolve", "billboard")
 OUTPUT_SUFFIXES = (".exr", ".png")
+#: Animation outputs: a video, a GIF, or (no suffix) a folder of linear EXR frames.
+ANIMATION_SUFFIXES = (".mp4", ".gif")
+#: Frames rendered per compiled call of an animation (one compilation, a steady progress bar).
+ANIMATION_CHUNK = 8
 
 
 def run_scene(name: str, out: Path, npix: int, seed: int) -> None:
@@ -55,21 +59,21 @@ def run_render(
     tonemap_name: str,
     exposure: float,
     pixel_scale_deg: float | None,
+    frames: int | None = None,
+    fps: float | None = None,
 ) -> None:
     import jax.numpy as jnp
 
-    from invglare.io.config import load_toml
-    from invglare.io.exr import read_exr, write_exr
-    from invglare.io.images import write_png
-    from invglare.io.model_config import build_model, model_to_config
+    from invglare.io.exr import read_exr
     from invglare.render import (
         add_billboards,
-        bright_pixel_list,
         convolve_psf,
-        tonemap,
         validate_scene,
     )
 
+    if frames is not None or fps is not None:
+        run_animation(scene, model_path, out, frames, fps, pixel_scale_deg)
+        return
     if mode not in MODES:
         raise ConfigError(f"--mode {mode!r} is not one of {', '.join(MODES)}")
     if out.suffix.lower() not in OUTPUT_SUFFIXES:
@@ -81,8 +85,17 @@ def run_render(
         raise InputDataError(
             f"{scene} has no pixelScaleDeg header; pass --pixel-scale-deg (degrees per pixel)"
         )
-    config = load_toml(model_path)
-    model = build_model(config, base_dir=model_path.parent, source=str(model_path))
+    if _model_kind(model_path) == "veiling":
+        from invglare.render.ghost_frames import render_ghosts
+
+        # Lens ghosts are no convolution: each light gets the ghosts of its own direction,
+        # on a model built on the scene's grid with its axis at the centre.
+        model = _load_model(model_path, npix=tuple(image.shape[:2]), pixel_scale_deg=scale)
+        bright = _bright(jnp.asarray(image), threshold, max_bright)
+        result = render_ghosts(model, image, bright, scale)
+        _write(out, np.asarray(result), scale, model, "ghosts", scene, tonemap_name, exposure)
+        return
+    model = _load_model(model_path)
     psf = psf_at_scale(model, scale, max_npix=2 * max(image.shape[:2]) + 1)
     if image.ndim == 3 and psf.ndim == 2:
         psf = jnp.repeat(psf[..., None], image.shape[2], axis=-1)
@@ -92,17 +105,7 @@ def run_render(
     if mode == "convolve":
         result = convolve_psf(image, psf)
     else:
-        lum = image if image.ndim == 2 else image @ jnp.asarray([0.2126, 0.7152, 0.0722])
-        level = float(jnp.max(lum)) / 100.0 if threshold is None else threshold
-        bright = bright_pixel_list(image, level, max_bright)
-        if int(bright.n_above) > max_bright:
-            log.warning(
-                "%d pixels exceed the threshold %.4g; only the %d brightest get billboards "
-                "(raise --max-bright or --threshold)",
-                int(bright.n_above),
-                level,
-                max_bright,
-            )
+        bright = _bright(image, threshold, max_bright)
         # Listed bright pixels are replaced by their spread light, so energy is conserved;
         # bright pixels beyond max_bright stay as they are.
         listed = (
@@ -112,16 +115,212 @@ def run_render(
         )
         keep = 1.0 - (listed if image.ndim == 2 else listed[..., None])
         result = add_billboards(image * keep, bright, psf)
-    result = np.asarray(result)
+    _write(out, np.asarray(result), scale, model, mode, scene, tonemap_name, exposure)
+    log.info("PSF %dpx at %.4g deg/px", psf.shape[0], scale)
+
+
+def _write(out: Path, result, scale: float, model, mode: str, scene: Path, tonemap_name, exposure):
+    """A linear EXR (model config in the header) or a tone-mapped PNG."""
+    from invglare.io.exr import write_exr
+    from invglare.io.images import write_png
+    from invglare.render import tonemap
+
     if out.suffix.lower() == ".exr":
         write_exr(
             out,
             result,
             pixel_scale_deg=scale,
-            config=model_to_config(model),
+            config=_config_of(model),
             attrs={"renderMode": mode, "scene": str(scene)},
         )
     else:
         params = {"exposure": exposure} if tonemap_name in ("gamma", "srgb") else {}
         write_png(out, np.asarray(tonemap(result, tonemap_name, **params)))
-    log.info("wrote %s (%s, PSF %dpx at %.4g deg/px)", out, mode, psf.shape[0], scale)
+    log.info("wrote %s (%s)", out, mode)
+
+
+def _load_model(model_path: Path, **grid):
+    """The model of a config file (`grid`: ``npix`` / ``pixel_scale_deg`` overrides)."""
+    from invglare.io.config import load_toml
+    from invglare.io.model_config import build_model
+
+    config = load_toml(model_path)
+    return build_model(config, base_dir=model_path.parent, source=str(model_path), **grid)
+
+
+def _model_kind(model_path: Path) -> str | None:
+    from invglare.io.config import load_toml
+
+    table = load_toml(model_path).get("model")
+    return table.get("kind") if isinstance(table, dict) else None
+
+
+def _bright(image, threshold: float | None, max_bright: int):
+    """The lights: the `max_bright` brightest pixels above `threshold` (default max / 100)."""
+    import jax.numpy as jnp
+
+    from invglare.render import bright_pixel_list
+
+    lum = image if image.ndim == 2 else image @ jnp.asarray([0.2126, 0.7152, 0.0722])
+    level = float(jnp.max(lum)) / 100.0 if threshold is None else threshold
+    bright = bright_pixel_list(image, level, max_bright)
+    if int(bright.n_above) > max_bright:
+        log.warning(
+            "%d pixels exceed the threshold %.4g; only the %d brightest get glare "
+            "(raise --max-bright or --threshold)",
+            int(bright.n_above),
+            level,
+            max_bright,
+        )
+    return bright
+
+
+def _config_of(model) -> dict:
+    """The config written into an output's header."""
+    from invglare.io.model_config import model_to_config
+
+    return model_to_config(model)
+
+
+def _animation_target(out: Path) -> str:
+    """ "mp4", "gif" or "exr" (a folder of frames) from the output path, or a ConfigError."""
+    suffix = out.suffix.lower()
+    if suffix in ANIMATION_SUFFIXES:
+        return suffix[1:]
+    if suffix:
+        raise ConfigError(
+            f"an animation's --out must end in {' or '.join(ANIMATION_SUFFIXES)}, or be a "
+            f"folder (no suffix) for EXR frames; got {out.name!r}"
+        )
+    if out.exists() and (not out.is_dir() or any(out.iterdir())):
+        raise ConfigError(f"--out folder {str(out)!r} exists and is not empty; choose a new one")
+    return "exr"
+
+
+def _frame_writer(target: str, path: Path, fps: float):
+    """An imageio writer for 8-bit frames (mp4 through imageio-ffmpeg's bundled encoder)."""
+    import imageio.v2 as imageio
+
+    if target == "mp4":
+        try:
+            import imageio_ffmpeg  # noqa: F401  (the encoder imageio's ffmpeg plugin runs)
+        except ImportError:
+            raise ConfigError(
+                "writing .mp4 needs the imageio-ffmpeg package (pip install imageio-ffmpeg); "
+                "or write a .gif or a folder of EXR frames"
+            ) from None
+        # macro_block_size 2: yuv420p needs even sizes, and anything coarser rescales frames.
+        return imageio.get_writer(
+            path, format="FFMPEG", fps=fps, codec="libx264", quality=8, macro_block_size=2
+        )
+    return imageio.get_writer(path, format="GIF", mode="I", duration=1000.0 / fps, loop=0)
+
+
+def run_animation(
+    scene: Path,
+    model_path: Path,
+    out: Path,
+    frames: int | None,
+    fps: float | None,
+    pixel_scale_deg: float | None,
+) -> None:
+    """``invglare render --frames N --fps F``: a still HDR scene seen through a living eye.
+
+    The frames are rendered by the temporal model's `lax.scan` in chunks of
+    `ANIMATION_CHUNK` (one compilation), carrying the dynamics state from chunk to chunk,
+    with a progress bar; they go to an MP4 or GIF (tone-mapped with the model's operator)
+    or, for an output path without suffix, to a folder of linear EXR frames
+    ``frame_00000.exr`` ... Files are written atomically (a folder is filled under a
+    temporary name and renamed when complete).
+    """
+    import shutil
+    import uuid
+
+    import equinox as eqx
+    import jax.numpy as jnp
+    from tqdm import tqdm
+
+    from invglare.io.atomic import atomic_path
+    from invglare.io.exr import read_exr, write_exr
+    from invglare.models.temporal import (
+        TemporalGlare,
+        frame_luminance_cd_m2,
+        temporal_to_config,
+    )
+    from invglare.render import validate_scene
+    from invglare.render.temporal_frames import check_display, render_sequence
+
+    if frames is None:
+        raise ConfigError("--fps needs --frames (the number of frames to render)")
+    if isinstance(frames, bool) or not isinstance(frames, int) or frames < 1:
+        raise ConfigError(f"--frames must be an integer >= 1, got {frames!r}")
+    target = _animation_target(out)
+    img = read_exr(scene)
+    image = validate_scene(img.data, name=str(scene))
+    scale = pixel_scale_deg if pixel_scale_deg is not None else img.pixel_scale_deg
+    if scale is None:
+        raise InputDataError(
+            f"{scene} has no pixelScaleDeg header; pass --pixel-scale-deg (degrees per pixel)"
+        )
+    model = _load_model(model_path)
+    if not isinstance(model, TemporalGlare):
+        raise ConfigError(
+            f"--frames animates a temporal model (model.kind = 'temporal' in {model_path}); "
+            f"this config builds a {type(model).__name__}"
+        )
+    if fps is not None:
+        model = model.with_fps(fps)
+    if image.ndim == 3 and not model.is_spectral:
+        image = image @ np.asarray([0.2126, 0.7152, 0.0722], image.dtype)
+    output = "linear" if target == "exr" else "display"
+    if output == "display":
+        check_display(model)  # an unknown tone map fails before any frame is computed
+    chunk = min(ANIMATION_CHUNK, frames)
+    run = eqx.filter_jit(
+        lambda m, im, st: render_sequence(m, im, chunk, st, image_scale_deg=scale, output=output)
+    )
+    image = jnp.asarray(image)
+    # Start adapted to the scene; a concrete state (not None) keeps one compilation for all chunks.
+    state = model.init_state(frame_luminance_cd_m2(image, model.luminance_scale))
+    config = temporal_to_config(model)
+
+    def frames_out():
+        nonlocal state
+        done = 0
+        with tqdm(total=frames, desc="frames", unit="frame", disable=None) as bar:
+            while done < frames:
+                state, block = run(model, image, state)
+                # The last chunk is computed whole (no second compilation); extras are dropped.
+                block = np.asarray(block)[: frames - done]
+                yield from block
+                done += len(block)
+                bar.update(len(block))
+
+    if target == "exr":
+        staging = out.parent / f".{out.name}.{uuid.uuid4().hex[:12]}.tmp"
+        staging.mkdir(parents=True)
+        try:
+            for i, frame in enumerate(frames_out()):
+                write_exr(
+                    staging / f"frame_{i:05d}.exr",
+                    frame,
+                    pixel_scale_deg=scale,
+                    config=config,
+                    attrs={"frame": i, "fps": model.fps, "scene": str(scene)},
+                )
+            if out.exists():
+                out.rmdir()  # empty, checked above
+            staging.rename(out)
+        except BaseException:
+            shutil.rmtree(staging, ignore_errors=True)
+            raise
+    else:
+        with atomic_path(out) as tmp:
+            writer = _frame_writer(target, tmp, model.fps)
+            try:
+                for frame in frames_out():
+                    rgb = frame if frame.ndim == 3 else np.repeat(frame[..., None], 3, axis=-1)
+                    writer.append_data(np.round(np.clip(rgb, 0.0, 1.0) * 255.0).astype(np.uint8))
+            finally:
+                writer.close()
+    log.info("wrote %s (%d frames at %g frames/s, %s)", out, frames, model.fps, target)

@@ -51,7 +51,9 @@ or a cross-screen filter) masked by a pupil (the eye's, or a diaphragm). They ta
     focal_length_mm = 50.0
 
 The kind ``"veiling"`` (lens ghosts as Fourier series, :mod:`invglare.models.veiling_config`)
-has its own schema; see ``examples/veiling_cooke.toml``.
+has its own schema; see ``examples/veiling_cooke.toml``. The kind ``"temporal"`` (the dynamic
+eye of Ritschel et al., :func:`invglare.models.temporal.temporal_from_config`) likewise; see
+``examples/temporal_eye.toml``.
 
 Without ``[spectrum] wavelengths_nm`` a spectral model uses 380:770:32 and a paper_rgb
 model 680/530/460 nm; one wavelength gives a monochrome PSF (what a fit needs).
@@ -69,13 +71,14 @@ from invglare.errors import ConfigError
 from invglare.io.config import Section, check_sections
 from invglare.models.aperture_psf import AperturePSF
 from invglare.models.kakimoto import COLOURS, MASKINGS, KakimotoGlare, kakimoto_to_config
+from invglare.models.temporal import TemporalGlare, temporal_from_config, temporal_to_config
 from invglare.models.veiling import VeilingGlare
 from invglare.models.veiling_config import veiling_from_config, veiling_to_config
 from invglare.optics.propagator import METHODS, PROPAGATIONS
 from invglare.optics.spectral import SPECTRAL_METHODS, parse_wavelengths
 
-MODEL_KINDS = ("aperture", "eye", "camera", "veiling")
-GlareModel = AperturePSF | KakimotoGlare | VeilingGlare
+MODEL_KINDS = ("aperture", "eye", "camera", "veiling", "temporal")
+GlareModel = AperturePSF | KakimotoGlare | VeilingGlare | TemporalGlare
 SECTIONS = ("model", "output", "spectrum")
 _GLARE_KEYS = ("obstacle_distance_mm", "masking", "colour", "max_light_angle_deg")
 
@@ -107,6 +110,14 @@ def build_model(
             pixel_scale_deg=pixel_scale_deg,
             wavelengths_nm=wavelengths_nm,
             source=source,
+        )
+    if kind == "temporal":
+        return temporal_from_config(
+            config,
+            base_dir,
+            npix=npix,
+            pixel_scale_deg=pixel_scale_deg,
+            wavelengths_nm=wavelengths_nm,
         )
     if kind == "aperture":
         focal = model.get("focal_length_mm", float, required=True)
@@ -181,6 +192,8 @@ def model_to_config(model: GlareModel) -> dict[str, Any]:
     """
     if isinstance(model, VeilingGlare):
         return veiling_to_config(model)
+    if isinstance(model, TemporalGlare):
+        return temporal_to_config(model)
     prop, spec = model.propagator, model.spectrum
     table: dict[str, Any] = {
         "focal_length_mm": float(prop.focal_length_mm),

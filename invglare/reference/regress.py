@@ -47,9 +47,9 @@ SSIM (log) to 0.76-0.86 (MFT aperture, eye). A GPU
 **Coverage.** ``AperturePSF`` by FFT and by MFT, with the Fresnel term, monochrome,
 spectral-exact and spectral-scaled; the Kakimoto eye with fixed and position-dependent
 masking in ``paper_rgb`` and spectral colour; the Kakimoto camera with a cross-screen
-filter. The temporal model of Ritschel et al. (issue 4, ``models.temporal``) does not
-exist yet: when it lands, add a case of one frame at a fixed time and key (its dynamics
-are pure functions of time and key, so a frame is reproducible).
+filter; one frame of the temporal model of Ritschel et al. (``models.temporal``: Fresnel
+term, scaled spectral copies) at a fixed time and key (its dynamics are pure functions
+of time and key, so a frame is reproducible).
 
 **Updating.** :func:`update_goldens` rewrites the stored PSFs of the cases that
 differ (or are missing) and appends to ``<golden_dir>/CHANGES.md`` the date, the reason
@@ -347,6 +347,43 @@ CASES: tuple[Case, ...] = (
             },
             "output": {"npix": 128},
         },
+    ),
+    Case(
+        "temporal_frame",
+        "temporal eye (Ritschel): frame 0 of key 3 adapted to 10 cd/m^2, lids, lashes, lens "
+        "particles and gratings, Fresnel at 575 nm, 8 scaled copies 400-700 nm",
+        {
+            "model": {
+                "kind": "temporal",
+                "aperture_npix": 128,
+                "focal_length_mm": 1200.0,
+                "seed": 3,
+                "field_luminance_cd_m2": 10.0,
+                "eye": {
+                    "seed": 5,
+                    "pupil": {"diameter_mm": 6.0},
+                    "lids": _LIDS,
+                    "lashes_upper": _LASHES_UPPER,
+                    "particles": [
+                        {
+                            "region": "lens_nucleus",
+                            "count": 40.0,
+                            "n_max": 40,
+                            "radius_mean_mm": 0.04,
+                        },
+                    ],
+                    "gratings": {
+                        "count": 12.0,
+                        "n_max": 12,
+                        "spacing_mm": 0.08,
+                        "line_thickness_mm": 0.03,
+                    },
+                },
+            },
+            "output": {"npix": 128},
+            "spectrum": {"wavelengths_nm": "400:700:8"},
+        },
+        tolerance=FRESNEL_TOLERANCE,
     ),
 )
 
@@ -936,9 +973,8 @@ def write_report(
         "right `log10(|recomputed − golden| / peak)` from −12 to 0 (viridis; all dark when the",
         "two are bit-identical).",
         "",
-        "Not covered yet: the temporal model of Ritschel et al. (`models.temporal`, issue 4)",
-        "does not exist; when it lands, the suite gets a case of one frame at a fixed time",
-        "and key.",
+        "The temporal model (Ritschel et al.) is covered by one frame at a fixed time and key",
+        "(`temporal_frame`).",
         "",
     ]
     path = out / "regression.md"

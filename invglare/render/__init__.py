@@ -5,7 +5,9 @@ A glare render is: find the bright pixels of a linear HDR image (`bright_pixels`
 whole frame, or `billboard_glare` stamps at a list of pixels, optionally with a
 PSF per position), add the result to the image and tone-map it for display
 (`tonemap` and `TONEMAPS`). `scenes` provides small procedural HDR scenes in
-cd/m^2 so that all of this runs with nothing downloaded.
+cd/m^2 so that all of this runs with nothing downloaded. `temporal_frames` renders the
+temporal glare model's animations (`render_frame`, `render_sequence`: a per-frame PSF
+convolved with an HDR frame and tone-mapped, one `lax.scan` per sequence).
 """
 
 from invglare.render.billboard import add_billboards as add_billboards
@@ -25,6 +27,8 @@ from invglare.render.scenes import street_lights_at_night as street_lights_at_ni
 from invglare.render.scenes import sunlit_specular_highlight as sunlit_specular_highlight
 from invglare.render.scenes import validate_scene as validate_scene
 from invglare.render.scenes import write_scene as write_scene
+from invglare.render.temporal_frames import render_frame as render_frame
+from invglare.render.temporal_frames import render_sequence as render_sequence
 from invglare.render.tonemap import DISPLAY_MAX as DISPLAY_MAX
 from invglare.render.tonemap import TONEMAPS as TONEMAPS
 from invglare.render.tonemap import GlareLayers as GlareLayers

@@ -1,0 +1,808 @@
+"""Temporal glare: the dynamic human eye of Ritschel et al. (2009), frame by frame.
+
+Every frame (sec. 5 of the paper):
+
+1. the dynamics (:mod:`invglare.dynamics`) give the frame's pupil diameter (eq. 1-2),
+   lid opening (blinks, squint), lens deformation and vitreous rotation;
+2. they are applied to an :class:`~invglare.aperture.eye.EyeAperture` with
+   ``eqx.tree_at``: pupil diameter, lid openings, and per-particle offsets
+   (`Particles.offsets_mm`) moving lens-nucleus particles through the lens mesh and
+   vitreous particles with the rigid body; cornea cells and gratings stay put;
+3. the aperture is multiplied by the Fresnel term ``E`` at 575 nm (eq. 3) and
+   Fourier transformed (one FFT): the monochromatic PSF ``F_575``;
+4. the spectral PSF is the sum of `n` scaled copies of ``F_575`` (n = 32 over
+   380-770 nm), weighted in XYZ and turned into linear RGB;
+5. it is convolved with the HDR frame (FFT convolution) and tone-mapped (gamma 2.2 as
+   in the paper, or any operator of :mod:`invglare.render.tonemap`): that step is the
+   render tier's, :mod:`invglare.render.temporal_frames` (`render_frame`,
+   `render_sequence`); the model carries the tone map's name and parameters as plain
+   configuration for it.
+
+A sequence is one `lax.scan` over the dynamics state, so an animation is one compiled
+call. The parts of the aperture that do not move (cornea cells, gratings, the Fresnel
+term, and the lids with their lashes while no blink is under way) are rasterised once
+per sequence and reused by every frame; a blink re-rasterises the lids of its frames
+only (`lax.cond`).
+
+**Sampling.** The aperture window holds the largest pupil the dynamics can produce
+(eq. 1's upper bound), the PSF is at the FFT's native pixel scale
+``575 nm / (fft_npix * pitch)``. The Fresnel term must be resolved by the raster (the
+propagator refuses it otherwise): with a pupil-to-retina distance of about 17 mm its
+phase oscillates at hundreds of cycles per mm at the pupil's edge, which would take
+thousands of pixels; a real-time raster of a few hundred pixels resolves it at an
+*effective* distance of a few hundred mm (`focal_length_mm`), which keeps the Fresnel
+character of the pattern (Fresnel number ``r**2 / (lambda d)`` of a few to tens) as
+the paper's pre-computed ``E`` texture does. Say so when you quote a distance.
+
+**Brightness.** PSFs have unit energy per wavelength (``brightness="unit"``, as every
+static model), or are scaled by the power the aperture transmits, in mm^2
+(``"transmitted"``): the retinal image then dims with a constricting pupil and goes
+dark during a blink; set the tone map's exposure accordingly.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from typing import Any
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, ArrayLike, Float, Key
+
+from invglare.aperture.eye import EyeAperture, Particles
+from invglare.dynamics import (
+    DynamicsState,
+    EyeDynamics,
+    FrameValues,
+    hippus_scale,
+    max_hippus_amplitude_mm,
+)
+from invglare.dynamics.lens import safe_sqrt
+from invglare.dynamics.noise import uniform
+from invglare.dynamics.pupil import MOON_SPENCER_RANGE_MM
+from invglare.errors import ConfigError, PhysicsRangeError
+from invglare.models.aperture_psf import build_propagator, default_window_mm
+from invglare.optics.fraunhofer import intensity_fft, transmitted_power
+from invglare.optics.fresnel import fresnel_phase
+from invglare.optics.propagator import Propagator
+from invglare.optics.spectral import DEFAULT_WAVELENGTHS, Spectrum, scale_psf, xyz_to_rgb
+
+__all__ = [
+    "BRIGHTNESS",
+    "SequenceConstants",
+    "TemporalGlare",
+    "check_n_frames",
+    "frame_luminance_cd_m2",
+    "temporal_from_config",
+    "temporal_to_config",
+]
+
+#: How a frame's PSF is scaled: unit energy, or by the power the aperture transmits (mm^2).
+BRIGHTNESS = ("unit", "transmitted")
+#: Regions whose particles the dynamics move.
+_MOVING = ("lens_nucleus", "vitreous")
+# fold_in tag of the particle depths (their coordinate along the optical axis).
+_DEPTH_TAG = 4242
+_REC709_Y = (0.2126, 0.7152, 0.0722)
+
+
+def _as_key(x) -> Key[Array, ""]:
+    if isinstance(x, int | np.integer) and not isinstance(x, bool):
+        return jax.random.key(int(x))
+    arr = jnp.asarray(x)
+    if jnp.issubdtype(arr.dtype, jax.dtypes.prng_key):
+        return arr
+    if arr.dtype == jnp.uint32:
+        return jax.random.wrap_key_data(arr)
+    raise ConfigError(f"key must be a jax.random.key, raw uint32 key data or an int, got {x!r}")
+
+
+def _float(x) -> Array:
+    arr = jnp.asarray(x)
+    if not jnp.issubdtype(arr.dtype, jnp.floating):
+        arr = arr.astype(jnp.result_type(float))
+    return arr
+
+
+def frame_luminance_cd_m2(
+    image: Float[ArrayLike, "H W *c"], luminance_scale: float | Float[ArrayLike, ""] = 1.0
+) -> Float[Array, ""]:
+    """Mean luminance (cd/m^2) of a frame: Rec. 709 Y of RGB (or the mono values) times scale."""
+    image = _float(image)
+    y = image if image.ndim == 2 else image @ jnp.asarray(_REC709_Y, image.dtype)
+    return jnp.mean(y) * luminance_scale
+
+
+class SequenceConstants(eqx.Module):
+    """The per-sequence constants of the pipeline (:meth:`TemporalGlare.sequence_constants`,
+    computed inside the traced call and reused by every frame)."""
+
+    fresnel: Array  # E at the reference wavelength
+    log_static: Array  # log-transmission of the particles and gratings that do not move
+    obstacle: Array  # lids and lashes at the resting open fraction
+    open_fraction: Array  # that resting open fraction (1 - squint)
+    depths_mm: tuple  # per moving population: the particles' coordinate along the axis
+
+
+class TemporalGlare(eqx.Module):
+    """The temporal glare model: a dynamic eye, its spectral Fresnel PSF, glare on frames.
+
+    Build one with :meth:`build` (or from a config with :func:`temporal_from_config`).
+
+    **Fields:**
+
+    - `eye`: the eye at rest (:class:`~invglare.aperture.eye.EyeAperture`, stamp windows
+      fixed for the grid); parameters addressed by path, e.g. ``"eye.pupil.diameter_mm"``.
+    - `dynamics`: the :class:`~invglare.dynamics.EyeDynamics` parameters.
+    - `key`: randomness of the dynamics and of the particles' depths.
+    - `propagator`: aperture grid and FFT output grid (Fresnel, reference wavelength).
+    - `spectrum`: wavelengths and weights (scaled copies of the reference PSF).
+    - `field_luminance_cd_m2`: luminance the eye is adapted to when no frame says
+      otherwise (for :meth:`__call__` and :meth:`psf_sequence` without a state).
+    - `luminance_scale`: cd/m^2 per unit of a frame's pixel values.
+    - `fps`: frames per second (static).
+    - `psf_scale_deg`: static copy of the PSF's pixel scale (deg), set by :meth:`build`
+      (resampling to a frame's scale needs it concrete under `jit`).
+    - `lids_move`: static, set by :meth:`build` from whether the dynamics blink: when
+      False the lids and lashes are rasterised once per sequence and never per frame.
+    - `brightness`: ``"unit"`` or ``"transmitted"`` (static; see the module docstring).
+    - `tonemap_name`, `tonemap_params`: the display operator and its parameters (static,
+      plain data: :mod:`invglare.render.temporal_frames` checks and applies them).
+
+    Frames (convolution with an HDR image, tone mapping) are rendered by
+    :func:`invglare.render.temporal_frames.render_frame` and
+    :func:`~invglare.render.temporal_frames.render_sequence`, which take the model.
+    """
+
+    eye: EyeAperture
+    dynamics: EyeDynamics
+    key: Key[Array, ""] = eqx.field(converter=_as_key)
+    propagator: Propagator
+    spectrum: Spectrum
+    field_luminance_cd_m2: Float[Array, ""] = eqx.field(converter=_float)
+    luminance_scale: Float[Array, ""] = eqx.field(converter=_float)
+    fps: float = eqx.field(static=True)
+    lids_move: bool = eqx.field(static=True, default=True)
+    psf_scale_deg: float = eqx.field(static=True, default=0.0)
+    brightness: str = eqx.field(static=True, default="unit")
+    tonemap_name: str = eqx.field(static=True, default="gamma")
+    tonemap_params: tuple[tuple[str, float], ...] = eqx.field(
+        static=True, default=(("exposure", 1.0), ("gamma", 2.2))
+    )
+
+    # ----------------------------------------------------------------------------- build
+
+    @classmethod
+    def build(
+        cls,
+        eye: EyeAperture,
+        dynamics: EyeDynamics | None = None,
+        *,
+        focal_length_mm: float | None = None,
+        npix: int = 512,
+        aperture_npix: int | None = None,
+        window_mm: float | None = None,
+        wavelengths_nm: Any = DEFAULT_WAVELENGTHS,
+        reference_wavelength_nm: float = 575.0,
+        illuminant: str = "E",
+        colourspace: str = "sRGB",
+        fps: float = 30.0,
+        key: Key[Array, ""] | int = 0,
+        field_luminance_cd_m2: float = 100.0,
+        luminance_scale: float = 1.0,
+        brightness: str = "unit",
+        tonemap_name: str = "gamma",
+        tonemap_params: dict[str, float] | None = None,
+    ) -> TemporalGlare:
+        """Choose the sampling for an eye and its dynamics, validating every choice.
+
+        **Arguments:**
+
+        - `eye`: the eye at rest; its pupil diameter is the mean diameter when
+          ``dynamics.pupil.from_luminance`` is False.
+        - `dynamics`: :class:`~invglare.dynamics.EyeDynamics` (default: the paper's).
+        - `focal_length_mm`: distance (mm) in the Fresnel term ``E`` (see the module
+          docstring: an effective distance the raster resolves); default: 10 % beyond
+          the shortest one the raster resolves at the window's edge.
+        - `npix`: output PSF size (FFT size, px).
+        - `aperture_npix`: aperture raster size (default ``npix // 2``, the FFT pads 2x).
+        - `window_mm`: aperture window (default: the largest pupil the dynamics reach
+          plus two pixels each side).
+        - `wavelengths_nm`: spectral samples (default 380:770:32, the paper's); one
+          wavelength gives a monochrome PSF.
+        - `reference_wavelength_nm`: the wavelength of the one FFT (575 nm).
+        - `illuminant`, `colourspace`: the light's spectrum and the RGB space.
+        - `fps`: frame rate (1/s).
+        - `key`: key (or int seed) of the dynamics.
+        - `field_luminance_cd_m2`: default adaptation luminance (cd/m^2).
+        - `luminance_scale`: cd/m^2 per frame pixel unit.
+        - `brightness`: ``"unit"`` or ``"transmitted"``.
+        - `tonemap_name`, `tonemap_params`: a tone map of :data:`invglare.render.TONEMAPS`
+          and its keyword parameters (default gamma 2.2, exposure 1), kept as plain data;
+          the render tier checks them against its registry when it displays a frame
+          (:mod:`invglare.render.temporal_frames`).
+
+        **Raises:** `ConfigError` for unknown choices or an unstable frame rate,
+        `PhysicsRangeError` for values out of range or a Fresnel term the raster aliases.
+
+        **Example:**
+
+        ```python
+        model = TemporalGlare.build(night_eye(0), npix=256)
+        state, psfs = jax.jit(lambda m: m.psf_sequence(8, 1.0))(model)  # (8, 256, 256, 3)
+        ```
+        """
+        dynamics = EyeDynamics() if dynamics is None else dynamics
+        if not isinstance(eye, EyeAperture):
+            raise ConfigError(f"the temporal model needs an EyeAperture, got {type(eye).__name__}")
+        if not isinstance(dynamics, EyeDynamics):
+            raise ConfigError(f"dynamics must be an EyeDynamics, got {type(dynamics).__name__}")
+        if brightness not in BRIGHTNESS:
+            raise ConfigError(f"brightness = {brightness!r} is not one of {', '.join(BRIGHTNESS)}")
+        if not (isinstance(fps, int | float) and math.isfinite(fps) and fps > 0):
+            raise PhysicsRangeError(f"fps must be a finite number > 0 frames/s, got {fps!r}")
+        if tonemap_params is None:
+            params = {"exposure": 1.0, "gamma": 2.2} if tonemap_name == "gamma" else {}
+        else:
+            params = dict(tonemap_params)
+        # The tone map is the render tier's (it is checked against its registry there, by
+        # invglare.render.temporal_frames, when a frame is displayed); here only its form.
+        if not isinstance(tonemap_name, str) or not tonemap_name:
+            raise ConfigError(f"tonemap_name must be a tone map's name, got {tonemap_name!r}")
+        for name, value in params.items():
+            if not (
+                isinstance(name, str)
+                and isinstance(value, int | float)
+                and not isinstance(value, bool)
+                and math.isfinite(value)
+            ):
+                raise ConfigError(
+                    f"tonemap_params must map names to finite numbers, got {name!r} = {value!r}"
+                )
+        for name, value in (
+            ("field_luminance_cd_m2", field_luminance_cd_m2),
+            ("luminance_scale", luminance_scale),
+        ):
+            if not (isinstance(value, int | float) and math.isfinite(value) and value >= 0):
+                raise PhysicsRangeError(f"{name} must be a finite number >= 0, got {value!r}")
+        dynamics.check_time_step(1.0 / float(fps))
+        pupil = dynamics.pupil
+        p_max = float(pupil.max_diameter_mm)
+        amplitude = float(pupil.hippus_amplitude_mm)
+        if pupil.from_luminance:
+            lo, hi = MOON_SPENCER_RANGE_MM
+        else:
+            lo = hi = float(eye.pupil.diameter_mm)
+            if not lo < p_max:
+                raise PhysicsRangeError(
+                    f"eye pupil diameter_mm = {lo:g} mm must be below the dynamics' "
+                    f"max_diameter_mm = {p_max:g} mm"
+                )
+            bound = max_hippus_amplitude_mm(lo, hi, p_max)
+            if amplitude > bound:
+                raise PhysicsRangeError(
+                    f"hippus_amplitude_mm = {amplitude:g} mm would take a {lo:g} mm pupil out of "
+                    f"(0, {p_max:g}) mm; it must be <= {bound:.4g} mm"
+                )
+        # The largest pupil of eq. 1 over the range of means: the window must hold it.
+        means = np.linspace(lo, hi, 201)
+        largest = float(np.max(means + amplitude * np.asarray(hippus_scale(means, p_max))))
+        lens_radius = float(dynamics.lens.radius_mm)
+        for population in eye.particles:
+            if (
+                population.region == "lens_nucleus"
+                and float(population.region_radius_mm) > lens_radius
+            ):
+                raise PhysicsRangeError(
+                    f"lens_nucleus particles fill a ball of {float(population.region_radius_mm):g} "
+                    f"mm, larger than the lens (radius_mm = {lens_radius:g} mm)"
+                )
+        decentre = float(np.hypot(*np.asarray(eye.pupil.decentration_mm)))
+        extent = 2.0 * (decentre + 0.5 * max(largest, float(eye.pupil.diameter_mm)))
+        aperture_npix = npix // 2 if aperture_npix is None else aperture_npix
+        if window_mm is None:
+            window_mm = default_window_mm(extent, int(aperture_npix))
+        if focal_length_mm is None:
+            # E's local frequency r / (lambda d) at the window's edge must stay below the
+            # raster's Nyquist frequency aperture_npix / (2 window).
+            nyquist = 0.5 * int(aperture_npix) / window_mm
+            focal_length_mm = 1.1 * (0.5 * window_mm) / (reference_wavelength_nm * 1e-6 * nyquist)
+        spectrum = Spectrum.build(
+            wavelengths_nm,
+            spectral="scaled",
+            reference_wavelength_nm=reference_wavelength_nm,
+            illuminant=illuminant,
+            colourspace=colourspace,
+        )
+        propagator = build_propagator(
+            extent,
+            spectrum,
+            focal_length_mm=focal_length_mm,
+            npix=npix,
+            pixel_scale_deg=None,
+            aperture_npix=aperture_npix,
+            window_mm=window_mm,
+            propagation="fresnel",
+            method="fft",
+        )
+        return cls(
+            eye=eye.with_stamp_windows(propagator.grid),
+            dynamics=dynamics,
+            key=key,
+            propagator=propagator,
+            spectrum=spectrum,
+            field_luminance_cd_m2=field_luminance_cd_m2,
+            luminance_scale=luminance_scale,
+            fps=float(fps),
+            lids_move=dynamics.lids.blinks,
+            psf_scale_deg=float(propagator.output.pixel_scale_deg),
+            brightness=brightness,
+            tonemap_name=tonemap_name,
+            tonemap_params=tuple(sorted((k, float(v)) for k, v in params.items())),
+        )
+
+    # ----------------------------------------------------------------------------- basics
+
+    def with_fps(self, fps: float) -> TemporalGlare:
+        """A copy running at `fps` frames per second (checked for a stable integration)."""
+        if not (isinstance(fps, int | float) and math.isfinite(fps) and fps > 0):
+            raise PhysicsRangeError(f"fps must be a finite number > 0 frames/s, got {fps!r}")
+        self.dynamics.check_time_step(1.0 / float(fps))
+        return dataclasses.replace(self, fps=float(fps))
+
+    @property
+    def frame_s(self) -> float:
+        """Duration of one frame (s)."""
+        return 1.0 / self.fps
+
+    @property
+    def pixel_scale_deg(self) -> float:
+        """Angular size of a PSF pixel (deg), the FFT's native scale at the reference."""
+        return self.psf_scale_deg
+
+    @property
+    def is_spectral(self) -> bool:
+        return self.spectrum.is_spectral
+
+    def init_state(self, field_luminance_cd_m2: ArrayLike | None = None) -> DynamicsState:
+        """The eye at rest at time 0, adapted to a luminance (default: the model's)."""
+        lum = self.field_luminance_cd_m2 if field_luminance_cd_m2 is None else field_luminance_cd_m2
+        return self.dynamics.init_state(lum)
+
+    def frame_values(self, state: DynamicsState) -> FrameValues:
+        """The dynamics' numbers for the frame `state` is at."""
+        return self.dynamics.values(state, self.key, self.eye.pupil.diameter_mm)
+
+    def advance(self, state: DynamicsState, frame_luminance: ArrayLike) -> DynamicsState:
+        """The state one frame later, after a frame of mean luminance `frame_luminance` (cd/m^2)."""
+        return self.dynamics.step(
+            state, frame_luminance, self.frame_s, self.key, self.eye.pupil.diameter_mm
+        )
+
+    # ----------------------------------------------------------------------------- aperture
+
+    def _depths_mm(self, index: int, population: Particles) -> Array:
+        """Each moving particle's coordinate along the axis, uniform over its chord.
+
+        A point uniform in a volume, given its projection ``(x, y)``, is uniform along the
+        chord through it; lens-nucleus particles are kept inside both their ball and the
+        lens spheroid.
+        """
+        xy = population.drawn_centers_mm()
+        rho2 = jnp.sum(xy * xy, axis=-1)
+        big_r = population.region_radius_mm
+        half = safe_sqrt(big_r * big_r - rho2)
+        if population.region == "lens_nucleus":
+            half = jnp.minimum(half, self.dynamics.lens.half_height_mm(jnp.sqrt(rho2)))
+        k = jax.random.fold_in(jax.random.fold_in(self.key, _DEPTH_TAG), index)
+        u = uniform(k, (population.n_max,), xy.dtype)
+        return (2.0 * u - 1.0) * half
+
+    def _offsets_mm(self, population: Particles, depth_mm: Array, values: FrameValues) -> Array:
+        """Displacement (mm) of each particle of a moving population in this frame."""
+        xy = population.drawn_centers_mm()
+        if population.region == "lens_nucleus":
+            rho = jnp.sqrt(jnp.maximum(jnp.sum(xy * xy, axis=-1), 1e-30))
+            new_rho, _ = self.dynamics.lens.deform(values.lens, rho, depth_mm)
+            # Radial motion only: the mesh is the lens's meridional section, and the axial
+            # coordinate does not survive the projection onto the pupil plane.
+            return ((new_rho - rho) / rho)[:, None] * xy
+        points = jnp.concatenate([xy, depth_mm[:, None]], axis=-1)
+        return (points @ values.vitreous_rotation.T)[:, :2] - xy
+
+    def frame_eye(
+        self, values: FrameValues, static: SequenceConstants | None = None
+    ) -> EyeAperture:
+        """The eye of one frame: pupil, lids and moving particles set from `values`."""
+        eye = eqx.tree_at(lambda e: e.pupil.diameter_mm, self.eye, values.pupil_mm)
+        if eye.lids is not None:
+            frac = values.lid_open_fraction
+            eye = eqx.tree_at(
+                lambda e: (e.lids.upper_opening_mm, e.lids.lower_opening_mm),
+                eye,
+                (self.eye.lids.upper_opening_mm * frac, self.eye.lids.lower_opening_mm * frac),
+            )
+        depths = self._all_depths() if static is None else static.depths_mm
+        particles = list(eye.particles)
+        for n, i in enumerate(self._moving_indices()):
+            offsets = self._offsets_mm(particles[i], depths[n], values)
+            particles[i] = dataclasses.replace(particles[i], offsets_mm=offsets)
+        return dataclasses.replace(eye, particles=tuple(particles))
+
+    def _moving_indices(self) -> tuple[int, ...]:
+        return tuple(i for i, p in enumerate(self.eye.particles) if p.region in _MOVING)
+
+    def _all_depths(self) -> tuple:
+        return tuple(self._depths_mm(i, self.eye.particles[i]) for i in self._moving_indices())
+
+    def sequence_constants(self) -> SequenceConstants:
+        """Everything that does not change from frame to frame (computed once per sequence)."""
+        grid = self.propagator.grid
+        eye = self.eye
+        moving = set(self._moving_indices())
+        log_static = jnp.zeros((grid.npix, grid.npix), jnp.result_type(grid.pitch_mm, float))
+        for i, population in enumerate(eye.particles):
+            if i not in moving:
+                log_static = log_static + population.log_transmission(grid)
+        if eye.gratings is not None:
+            log_static = log_static + eye.gratings.log_transmission(grid)
+        # The lids' resting opening is (1 - squint) of the configured one; a frame whose open
+        # fraction equals it (no blink under way) reuses this raster.
+        open_fraction = (1.0 - self.dynamics.lids.squint) * (1.0 - jnp.zeros(()))
+        rest = eye
+        if eye.lids is not None:
+            rest = eqx.tree_at(
+                lambda e: (e.lids.upper_opening_mm, e.lids.lower_opening_mm),
+                eye,
+                (
+                    eye.lids.upper_opening_mm * open_fraction,
+                    eye.lids.lower_opening_mm * open_fraction,
+                ),
+            )
+        return SequenceConstants(
+            fresnel=fresnel_phase(
+                grid, self.spectrum.reference_wavelength_nm, self.propagator.focal_length_mm
+            ),
+            log_static=log_static,
+            obstacle=rest.obstacle_transmission(grid),
+            open_fraction=open_fraction,
+            depths_mm=self._all_depths(),
+        )
+
+    def _aperture(self, static: SequenceConstants, values: FrameValues) -> Float[Array, "n n"]:
+        grid = self.propagator.grid
+        eye = self.frame_eye(values, static)
+        log_t = static.log_static
+        for i in self._moving_indices():
+            log_t = log_t + eye.particles[i].log_transmission(grid)
+        pupil = eye.pupil.coverage(grid) * jnp.exp(log_t)
+        if eye.lids is None:
+            return pupil
+        if not self.lids_move:
+            return pupil * static.obstacle
+        obstacle = jax.lax.cond(
+            values.lid_open_fraction == static.open_fraction,
+            lambda: static.obstacle,
+            lambda: eye.obstacle_transmission(grid),
+        )
+        return pupil * obstacle
+
+    def aperture(self, state: DynamicsState | None = None) -> Float[Array, "n n"]:
+        """The frame's amplitude transmission ``P t_o`` on the propagator's grid."""
+        state = self.init_state() if state is None else state
+        return self._aperture(self.sequence_constants(), self.frame_values(state))
+
+    # ----------------------------------------------------------------------------- PSF
+
+    def _mono_psf(self, static: SequenceConstants, aperture: Array) -> Float[Array, "npix npix"]:
+        prop = self.propagator
+        psf = intensity_fft(aperture * static.fresnel, prop.fft_npix, prop.output.npix)
+        if self.brightness == "transmitted":
+            psf = psf * transmitted_power(aperture, prop.grid.pitch_mm)
+        return psf
+
+    def _spectral_cf(self, mono: Array) -> Float[Array, "c npix npix"]:
+        """Linear RGB PSF, channels first, from scaled copies of the reference PSF.
+
+        The copies are made by a scan and stacked, then weighted in one contraction: the
+        same sum as :func:`~invglare.optics.spectral.scaled_copies_xyz`, ordered so that XLA
+        makes each copy once instead of once per channel (several times faster on a CPU).
+        """
+        if not self.is_spectral:
+            return mono[None]
+        spec = self.spectrum
+        factors = spec.wavelengths_nm.astype(mono.dtype) / spec.reference_wavelength_nm
+        weights = xyz_to_rgb(spec.weights_xyz.astype(mono.dtype), spec.colourspace)
+        _, copies = jax.lax.scan(lambda c, f: (c, scale_psf(mono, f)), None, factors)
+        return jnp.tensordot(weights.T, copies, axes=1)
+
+    def psf_cf(
+        self, static: SequenceConstants, state: DynamicsState
+    ) -> Float[Array, "c npix npix"]:
+        """A frame's PSF, channels first (``(1, n, n)`` mono), given the sequence constants."""
+        return self._spectral_cf(
+            self._mono_psf(static, self._aperture(static, self.frame_values(state)))
+        )
+
+    def psf(self, state: DynamicsState | None = None) -> Float[Array, "npix npix *c"]:
+        """The PSF of one frame: ``(npix, npix, 3)`` linear RGB, or ``(npix, npix)`` mono.
+
+        Energy per pixel at :attr:`pixel_scale_deg`, centre at ``npix // 2``; unit energy
+        (Y) with ``brightness="unit"``. `state` defaults to :meth:`init_state`.
+        """
+        state = self.init_state() if state is None else state
+        cf = self.psf_cf(self.sequence_constants(), state)
+        return cf[0] if not self.is_spectral else jnp.moveaxis(cf, 0, -1)
+
+    def __call__(self, state: DynamicsState | None = None) -> Float[Array, "npix npix *c"]:
+        """Same as :meth:`psf`: a frame's PSF (the static-model interface)."""
+        return self.psf(state)
+
+    def psf_sequence(
+        self,
+        n_frames: int,
+        luminance_cd_m2: Float[ArrayLike, "*n"] | None = None,
+        state: DynamicsState | None = None,
+    ) -> tuple[DynamicsState, Float[Array, "n npix npix *c"]]:
+        """PSFs of `n_frames` consecutive frames, by one `lax.scan`.
+
+        **Arguments:**
+
+        - `n_frames`: number of frames (static int >= 1).
+        - `luminance_cd_m2`: mean luminance of each frame (cd/m^2), a scalar or an
+          ``(n_frames,)`` array; default the model's `field_luminance_cd_m2`.
+        - `state`: the first frame's state (default :meth:`init_state` adapted to the
+          first frame's luminance).
+
+        **Returns:** the state after the last frame, and the PSFs.
+        """
+        check_n_frames(n_frames)
+        lum = self.field_luminance_cd_m2 if luminance_cd_m2 is None else _float(luminance_cd_m2)
+        lum = jnp.broadcast_to(lum, (n_frames,))
+        state = self.init_state(lum[0]) if state is None else state
+        static = self.sequence_constants()
+
+        def body(s, frame_lum):
+            cf = self.psf_cf(static, s)
+            return self.advance(s, frame_lum), cf
+
+        state, cfs = jax.lax.scan(body, state, lum)
+        return state, (cfs[:, 0] if not self.is_spectral else jnp.moveaxis(cfs, 1, -1))
+
+
+def check_n_frames(n_frames: int) -> None:
+    """Refuse a number of frames that is not a static integer >= 1 (`ConfigError`)."""
+    if not isinstance(n_frames, int | np.integer) or isinstance(n_frames, bool) or n_frames < 1:
+        raise ConfigError(f"n_frames must be an integer >= 1 (static), got {n_frames!r}")
+
+
+# --------------------------------------------------------------------------------------
+# configuration
+
+_DYNAMICS_PARTS = ("pupil", "accommodation", "lens", "vitreous", "lids")
+
+
+def _part_classes() -> dict[str, type]:
+    from invglare.dynamics import Accommodation, LensMesh, LidMotion, PupilDynamics, VitreousBody
+
+    return {
+        "pupil": PupilDynamics,
+        "accommodation": Accommodation,
+        "lens": LensMesh,
+        "vitreous": VitreousBody,
+        "lids": LidMotion,
+    }
+
+
+def _read_part(cls: type, table: Any, where: str):
+    """Build a dynamics part from a table whose keys are the part's fields."""
+    from invglare.io.config import Section
+
+    sec = Section(table, where)
+    args: dict[str, Any] = {}
+    for f in dataclasses.fields(cls):
+        default = f.default if f.default is not dataclasses.MISSING else None
+        if isinstance(default, bool):
+            kind: Any = bool
+        elif isinstance(default, int):
+            kind = int
+        elif isinstance(default, tuple):
+            kind = list
+        else:
+            kind = float
+        value = sec.get(f.name, kind, None)
+        if value is None:
+            continue
+        if kind is list:
+            if len(value) != len(default) or not all(
+                isinstance(v, int | float) and not isinstance(v, bool) for v in value
+            ):
+                raise ConfigError(
+                    f"{where}.{f.name} must be a list of {len(default)} numbers, got {value!r}"
+                )
+            value = tuple(float(v) for v in value)
+        args[f.name] = value
+    sec.finish()
+    try:
+        return cls(**args)
+    except (ConfigError, PhysicsRangeError) as err:
+        raise type(err)(f"{where}: {err}") from err
+
+
+def _part_table(part) -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    for f in dataclasses.fields(part):
+        value = getattr(part, f.name)
+        if isinstance(value, bool | int | str):
+            out[f.name] = value
+        elif isinstance(value, tuple):
+            out[f.name] = [float(v) for v in value]
+        else:
+            # float32 leaves printed at their own precision (0.03, not 0.029999999329447746).
+            out[f.name] = float(
+                str(np.asarray(value).item() if value.dtype == np.float64 else np.float32(value))
+            )
+    return out
+
+
+def temporal_from_config(
+    config: dict[str, Any],
+    base_dir: Any = None,
+    *,
+    npix: int | None = None,
+    pixel_scale_deg: float | None = None,
+    wavelengths_nm: Any = None,
+) -> TemporalGlare:
+    """Build a :class:`TemporalGlare` from a model config (``model.kind = "temporal"``).
+
+    **Arguments:**
+
+    - `config`: the whole parsed TOML (sections ``model``, ``output``, ``spectrum``).
+    - `base_dir`: where relative paths would be resolved (the temporal model has none;
+      accepted for the common interface).
+    - `npix`, `wavelengths_nm`: overrides of ``output.npix`` and
+      ``spectrum.wavelengths_nm``; `pixel_scale_deg` is refused (the PSF is at the FFT's
+      native scale).
+
+    ```toml
+    [model]
+    kind = "temporal"
+    aperture_npix = 256            # default output.npix / 2
+    focal_length_mm = 1000.0       # distance in E (default: the shortest the raster resolves)
+    window_mm = 8.5                # default: the largest pupil of the dynamics + 2 px
+    fps = 30.0
+    seed = 0                       # or key_data = [..] (what temporal_to_config writes)
+    field_luminance_cd_m2 = 100.0  # adaptation when no frame is given
+    luminance_scale = 1.0          # cd/m^2 per frame unit
+    brightness = "unit"            # or "transmitted"
+    tonemap = "gamma"              # any of invglare.render.TONEMAPS
+    [model.tonemap_params]         # keyword parameters of the tone map
+    exposure = 1.0
+    gamma = 2.2
+    [model.eye]                    # invglare.aperture.eye.eye_from_config
+    [model.dynamics.pupil]         # fields of PupilDynamics (and of Accommodation,
+    hippus_amplitude_mm = 0.1      #   LensMesh, VitreousBody, LidMotion in
+    [model.dynamics.lids]          #   [model.dynamics.accommodation], .lens, .vitreous,
+    interval_s = 4.0               #   .lids)
+    [output]
+    npix = 512
+    [spectrum]
+    wavelengths_nm = "380:770:32"  # spectral = "scaled" only
+    reference_wavelength_nm = 575.0
+    illuminant = "E"
+    colourspace = "sRGB"
+    ```
+
+    **Raises:** `ConfigError` naming the key for unknown keys, wrong types or choices;
+    `PhysicsRangeError` for values out of range.
+    """
+    from invglare.aperture.eye import eye_from_config
+    from invglare.io.config import Section, check_sections
+
+    del base_dir  # no file references in a temporal model
+    check_sections(config, ("model", "output", "spectrum"), "config")
+    model = Section(config.get("model", {}), "model")
+    kind = model.get("kind", str, required=True)
+    if kind != "temporal":
+        raise ConfigError(f"model.kind = {kind!r}; temporal_from_config reads kind = 'temporal'")
+    eye = eye_from_config(model.get("eye", dict, required=True), "model.eye")
+    dyn_table = Section(model.get("dynamics", dict, {}), "model.dynamics")
+    classes = _part_classes()
+    parts = {
+        name: _read_part(classes[name], dyn_table.get(name, dict, {}), f"model.dynamics.{name}")
+        for name in _DYNAMICS_PARTS
+    }
+    dyn_table.finish()
+    if "seed" in model.table and "key_data" in model.table:
+        raise ConfigError("model: give seed or key_data, not both")
+    key_data = model.get("key_data", list, None)
+    if key_data is not None:
+        if not key_data or not all(isinstance(v, int) and 0 <= v < 2**32 for v in key_data):
+            raise ConfigError(f"model.key_data must be a list of uint32 integers, got {key_data!r}")
+        key: Any = jax.random.wrap_key_data(np.asarray(key_data, np.uint32))
+    else:
+        key = model.get("seed", int, 0)
+    params = Section(model.get("tonemap_params", dict, {}), "model.tonemap_params")
+    for name in params.table:
+        params.get(name, float)
+    kwargs = dict(
+        focal_length_mm=model.get("focal_length_mm", float, None),
+        aperture_npix=model.get("aperture_npix", int, None),
+        window_mm=model.get("window_mm", float, None),
+        fps=model.get("fps", float, 30.0),
+        key=key,
+        field_luminance_cd_m2=model.get("field_luminance_cd_m2", float, 100.0),
+        luminance_scale=model.get("luminance_scale", float, 1.0),
+        brightness=model.choice("brightness", BRIGHTNESS, "unit"),
+        tonemap_name=model.get("tonemap", str, "gamma"),
+        tonemap_params={k: float(v) for k, v in params.table.items()} or None,
+    )
+    model.finish()
+    output = Section(config.get("output", {}), "output")
+    out_npix = output.get("npix", int, 512)
+    if output.get("pixel_scale_deg", float, None) is not None or pixel_scale_deg is not None:
+        raise ConfigError(
+            "the temporal model computes its PSF at the FFT's native pixel scale; drop "
+            "output.pixel_scale_deg (frames at another scale get a resampled PSF)"
+        )
+    output.finish()
+    spectrum = Section(config.get("spectrum", {}), "spectrum")
+    lams = spectrum.get("wavelengths_nm", (float, list, str), DEFAULT_WAVELENGTHS)
+    # One FFT per frame: the spectrum is made of scaled copies, so "exact" is refused.
+    spectrum.choice("spectral", ("scaled",), "scaled")
+    colour = dict(
+        reference_wavelength_nm=spectrum.get("reference_wavelength_nm", float, 575.0),
+        illuminant=spectrum.get("illuminant", str, "E"),
+        colourspace=spectrum.get("colourspace", str, "sRGB"),
+    )
+    spectrum.finish()
+    return TemporalGlare.build(
+        eye,
+        EyeDynamics(**parts),
+        npix=out_npix if npix is None else npix,
+        wavelengths_nm=lams if wavelengths_nm is None else wavelengths_nm,
+        **colour,
+        **kwargs,
+    )
+
+
+def temporal_to_config(model: TemporalGlare) -> dict[str, Any]:
+    """The config of a built temporal model, every choice explicit (inverse of the reader).
+
+    ``temporal_from_config(temporal_to_config(m))`` rebuilds the same model (same key,
+    sampling, dynamics and eye).
+    """
+    from invglare.aperture.eye import eye_to_config
+
+    if not isinstance(model, TemporalGlare):
+        raise ConfigError(f"temporal_to_config needs a TemporalGlare, got {type(model).__name__}")
+    prop, spec = model.propagator, model.spectrum
+    table: dict[str, Any] = {
+        "kind": "temporal",
+        "focal_length_mm": float(prop.focal_length_mm),
+        "aperture_npix": prop.grid.npix,
+        "window_mm": float(prop.grid.width_mm),
+        "fps": model.fps,
+        "key_data": [int(v) for v in np.asarray(jax.random.key_data(model.key)).ravel()],
+        "field_luminance_cd_m2": float(model.field_luminance_cd_m2),
+        "luminance_scale": float(model.luminance_scale),
+        "brightness": model.brightness,
+        "tonemap": model.tonemap_name,
+        "tonemap_params": dict(model.tonemap_params),
+        "eye": eye_to_config(model.eye),
+        "dynamics": {name: _part_table(getattr(model.dynamics, name)) for name in _DYNAMICS_PARTS},
+    }
+    return {
+        "model": table,
+        "output": {"npix": prop.output.npix},
+        "spectrum": {
+            "wavelengths_nm": [float(w) for w in spec.wavelengths_nm],
+            "spectral": "scaled",
+            "reference_wavelength_nm": spec.reference_wavelength_nm,
+            "illuminant": spec.illuminant,
+            "colourspace": spec.colourspace,
+        },
+    }

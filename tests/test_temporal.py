@@ -1,0 +1,520 @@
+"""The temporal glare model: dynamic eye -> Fresnel PSF -> scaled copies -> frames."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from helpers import x64
+
+from invglare.aperture.eye import EyeAperture, Eyelashes, Eyelids, Gratings, Particles, Pupil
+from invglare.dynamics import (
+    EyeDynamics,
+    LensMesh,
+    LidMotion,
+    PupilDynamics,
+    VitreousBody,
+    hippus_diameter_mm,
+    moon_spencer_diameter_mm,
+)
+from invglare.errors import ConfigError, InputDataError, PhysicsRangeError
+from invglare.models.kakimoto import KakimotoGlare
+from invglare.models.temporal import (
+    TemporalGlare,
+    frame_luminance_cd_m2,
+    temporal_from_config,
+    temporal_to_config,
+)
+from invglare.optics.fresnel import fresnel_mft
+from invglare.optics.spectral import psf_to_xyz, xyz_to_rgb
+from invglare.render.temporal_frames import frame_convolver, render_frame, render_sequence
+
+NPIX = 64
+
+
+def small_eye() -> EyeAperture:
+    """Every kind of component, a few of each (relaxed counts between integers)."""
+    return EyeAperture(
+        pupil=Pupil(5.0),
+        lids=Eyelids(2.2, 2.6),
+        upper_lashes=Eyelashes(
+            count=5.5, n_max=6, key=1, lid="upper", length_mm=2.0, thickness_mm=0.12, segments=4
+        ),
+        particles=(
+            Particles(
+                count=4.5, n_max=6, key=2, region="cornea", radius_mean_mm=0.1, region_radius_mm=4.0
+            ),
+            Particles(
+                count=12.5,
+                n_max=16,
+                key=3,
+                region="lens_nucleus",
+                radius_mean_mm=0.12,
+                region_radius_mm=2.0,
+            ),
+            Particles(
+                count=5.5,
+                n_max=8,
+                key=4,
+                region="vitreous",
+                radius_mean_mm=0.15,
+                region_radius_mm=4.0,
+            ),
+        ),
+        gratings=Gratings(
+            count=3.5,
+            n_max=4,
+            key=5,
+            spacing_mm=0.3,
+            line_thickness_mm=0.12,
+            line_length_mm=0.8,
+            inner_radius_mm=1.0,
+            outer_radius_mm=2.2,
+            lines_per_grating=3,
+        ),
+    )
+
+
+def moving_dynamics() -> EyeDynamics:
+    """Everything moves, visibly at this coarse raster; the mean pupil is the eye's own."""
+    return EyeDynamics(
+        pupil=PupilDynamics(hippus_amplitude_mm=0.3, from_luminance=False),
+        lens=LensMesh(equator_mm_per_diopter=1.0),
+        vitreous=VitreousBody(saccade_rate_hz=10.0, saccade_strength_rad_s2=20.0),
+        lids=LidMotion(interval_s=1.0, jitter=0.0, first_blink_s=0.2),
+    )
+
+
+@pytest.fixture(scope="module")
+def model() -> TemporalGlare:
+    return TemporalGlare.build(small_eye(), moving_dynamics(), npix=NPIX, key=11)
+
+
+@pytest.fixture(scope="module")
+def light_model() -> TemporalGlare:
+    """Pupil and one moving population, no lids: for what does not need every component
+    (rendering frames), at a fraction of the full eye's compile time."""
+    eye = EyeAperture(pupil=Pupil(5.0), particles=(small_eye().particles[1],))
+    return TemporalGlare.build(eye, moving_dynamics(), npix=NPIX, key=11)
+
+
+@pytest.fixture(scope="module")
+def sequence(model):
+    """Four frames by one scan, with the states the scan went through."""
+    states = [model.init_state()]
+    for _ in range(3):
+        states.append(ADVANCE(model, states[-1]))
+    last, psfs = jax.jit(lambda m: m.psf_sequence(4))(model)
+    return states, last, np.asarray(psfs)
+
+
+# Shared jitted entry points: every test that calls them with the module's model reuses
+# one compilation.
+PSF = jax.jit(lambda m, s: m.psf(s))
+APERTURE = jax.jit(lambda m, s: m.aperture(s))
+ADVANCE = jax.jit(lambda m, s: m.advance(s, m.field_luminance_cd_m2))
+FRAME_VALUES = jax.jit(lambda m, s: m.frame_values(s))
+
+
+def weights(shape, seed=0):
+    return jnp.asarray(np.random.default_rng(seed).random(shape))
+
+
+# ------------------------------------------------------------------------------ frames
+
+
+def test_sequence_is_one_scan_equal_to_frame_by_frame_and_moves(model, sequence):
+    states, last, psfs = sequence
+    assert psfs.shape == (4, NPIX, NPIX, 3)
+    assert int(last.frame) == 4
+    np.testing.assert_allclose(float(last.time_s), 4.0 / model.fps, rtol=1e-6)
+    for n in (0, 3):
+        np.testing.assert_allclose(psfs[n], PSF(model, states[n]), rtol=1e-5, atol=1e-9)
+    # Unit energy (Y) up to what the 575 nm copies scaled beyond the field lose.
+    y = psfs @ np.array([0.2126, 0.7152, 0.0722])
+    assert np.all((y.sum(axis=(1, 2)) > 0.85) & (y.sum(axis=(1, 2)) < 1.01))
+    changes = np.abs(np.diff(psfs, axis=0)).sum(axis=(1, 2, 3)) / np.abs(psfs[0]).sum()
+    assert np.all(changes > 1e-5)  # the glare fluctuates from frame to frame (33 ms apart)
+    # The pupil of every frame is eq. 1 about the eye's own diameter.
+    hippus_key = jax.random.fold_in(model.key, 1)
+    for s in states:
+        expected = hippus_diameter_mm(s.time_s, 5.0, hippus_key, 0.3)
+        np.testing.assert_allclose(FRAME_VALUES(model, s).pupil_mm, expected, rtol=1e-6)
+
+
+@pytest.mark.slow
+def test_frozen_dynamics_equal_the_static_eye_model_with_the_fresnel_term():
+    # Lids with lashes (the static obstacle) and a moving population (its offsets must
+    # vanish): the parts the dynamics would move; the other components never move.
+    full = small_eye()
+    eye = dataclasses.replace(full, particles=(full.particles[1],), gratings=None)
+    frozen = TemporalGlare.build(eye, EyeDynamics.frozen(), npix=NPIX)
+    assert not frozen.lids_move
+    prop = frozen.propagator
+    static = KakimotoGlare.build(
+        eye,
+        focal_length_mm=float(prop.focal_length_mm),
+        obstacle_distance_mm=8.0,
+        npix=NPIX,
+        aperture_npix=prop.grid.npix,
+        window_mm=float(prop.grid.width_mm),
+        colour="spectral",
+        masking="fixed",
+        propagation="fresnel",
+        method="fft",
+        spectral="scaled",
+    )
+    reference = np.asarray(jax.jit(lambda m: m())(static))
+    _, psfs = jax.jit(lambda m: m.psf_sequence(3, 1e3))(frozen)
+    for frame in np.asarray(psfs):
+        np.testing.assert_allclose(frame, reference, rtol=0, atol=2e-6 * reference.max())
+
+
+def test_blink_closes_the_aperture_fully_at_mid_blink(model):
+    aperture = APERTURE
+    mid = model.dynamics.lids.mid_blink_s(0, jax.random.fold_in(model.key, 4))
+    state = model.init_state()
+    shut = aperture(model, eqx.tree_at(lambda s: s.time_s, state, mid))
+    assert float(jnp.max(shut)) == 0.0
+    open_ = aperture(model, state)
+    assert float(jnp.sum(open_)) > 0.3 * float(
+        jnp.sum(model.eye.transmission(model.propagator.grid))
+    )
+    half = aperture(model, eqx.tree_at(lambda s: s.time_s, state, mid - 0.06))
+    assert 0.0 < float(jnp.sum(half)) < float(jnp.sum(open_))
+
+
+def test_lens_particles_move_inside_the_lens_and_vitreous_particles_rigidly(model):
+    # The ciliary element's pull takes a few tenths of a second to cross the lens mesh.
+    states = [model.init_state()]
+    for _ in range(15):
+        states.append(ADVANCE(model, states[-1]))
+    lens_pop, vit_pop = model.eye.particles[1], model.eye.particles[2]
+    # The frame's values by the shared compilation; the offsets from them.
+    offsets_of = jax.jit(
+        lambda m, v: [
+            m._offsets_mm(p, d, v)
+            for p, d in zip((lens_pop, vit_pop), m._all_depths(), strict=True)
+        ]
+    )
+
+    def offsets(m, s):
+        return offsets_of(m, FRAME_VALUES(m, s))
+
+    depth = jax.jit(lambda m: m._all_depths())(model)
+    xy = np.asarray(lens_pop.drawn_centers_mm())
+    rho = np.hypot(xy[:, 0], xy[:, 1])
+    lens = model.dynamics.lens
+    assert np.all(np.asarray(lens.inside(rho, depth[0])))  # rest particles inside the lens
+    moved = False
+    for s in states[5::5]:
+        lens_off, vit_off = (np.asarray(o) for o in offsets(model, s))
+        new_rho = np.hypot(*(xy + lens_off).T)
+        assert np.all(new_rho < float(lens.radius_mm))
+        # Radial motion: the offset is parallel to the particle's own direction.
+        np.testing.assert_allclose(
+            lens_off[:, 0] * xy[:, 1] - lens_off[:, 1] * xy[:, 0], 0.0, atol=1e-6
+        )
+        moved = moved or np.abs(lens_off).max() > 1e-4
+        vit_xy = np.asarray(vit_pop.drawn_centers_mm())
+        assert np.all(np.isfinite(vit_off)) and np.abs(vit_off).max() < np.abs(vit_xy).max()
+    assert moved
+
+
+def test_pupil_adapts_to_the_frames_luminance():
+    dyn = EyeDynamics(pupil=PupilDynamics(hippus_amplitude_mm=0.0))
+    m = TemporalGlare.build(EyeAperture(pupil=Pupil(4.0)), dyn, npix=32)
+    mean = jax.jit(lambda m, s: m.frame_values(s).mean_pupil_mm)
+    for level in (1e-2, 1e2, 1e4):
+        image = jnp.full((8, 8, 3), level)
+        lum = frame_luminance_cd_m2(image, m.luminance_scale)
+        np.testing.assert_allclose(float(lum), level, rtol=1e-5)
+        got = mean(m, m.init_state(lum))
+        np.testing.assert_allclose(got, moon_spencer_diameter_mm(level), rtol=1e-6)
+
+
+# ------------------------------------------------------------------------------ spectral
+
+
+def test_scaled_copies_against_exact_per_wavelength_fresnel_psfs(model, record_property):
+    """The paper's chromatic blur (one E at 575 nm, copies scaled by lambda / 575) against
+    the exact sum of per-wavelength Fresnel PSFs (E and the transform at each wavelength).
+
+    In the Fraunhofer limit the copies differ from the exact PSFs only by their bilinear
+    resampling; the Fresnel term breaks the scaling (the on-axis intensity of a Fresnel
+    pattern oscillates with the Fresnel number, which differs by 575 / 380 across the
+    spectrum), so the error grows with the Fresnel number. Measured at 64 px (N_F at 575 nm,
+    relative L1 / peak): 4.85: 0.38 / 0.80; 0.48: 0.13 / 0.12.
+    """
+    state = model.init_state()
+    aperture = APERTURE(model, state)
+    prop, spec = model.propagator, model.spectrum
+
+    @jax.jit
+    def exact_rgb(a, distance_mm):
+        mono = jax.vmap(lambda lam: fresnel_mft(a, prop.grid, lam, distance_mm, prop.output))(
+            spec.wavelengths_nm
+        )
+        return xyz_to_rgb(psf_to_xyz(mono, spec.weights_xyz), spec.colourspace)
+
+    # Compare where every wavelength's field is sampled without aliasing (the shortest one
+    # reaches 380 / 575 of the FFT's half field).
+    c = NPIX // 2
+    yy, xx = np.mgrid[:NPIX, :NPIX] - c
+    inside = np.hypot(yy, xx) < 0.6 * c
+    radius = 0.5 * float(model.eye.pupil.diameter_mm)
+    errors = {}
+    for factor in (1.0, 10.0, 1000.0):
+        distance = float(prop.focal_length_mm) * factor
+        m = eqx.tree_at(lambda m: m.propagator.focal_length_mm, model, distance)
+        scaled = np.asarray(PSF(m, state))
+        exact = np.asarray(exact_rgb(aperture, distance))
+        diff = np.abs(scaled - exact)[inside]
+        l1 = float(diff.sum() / np.abs(exact)[inside].sum())
+        peak = float(diff.max() / exact.max())
+        fresnel_number = radius**2 / (575e-6 * distance)
+        errors[factor] = (l1, peak)
+        record_property(f"scaled_copies_error_NF{fresnel_number:.2f}", (l1, peak))
+        print(
+            f"scaled copies vs exact Fresnel at N_F = {fresnel_number:.2f} (575 nm): "
+            f"relative L1 {l1:.4f}, peak {peak:.4f}"
+        )
+    # Fraunhofer limit: only the bilinear resampling of a PSF sampled at twice Nyquist.
+    assert errors[1000.0][0] < 0.2 and errors[1000.0][1] < 0.2
+    # The model's own Fresnel number: the paper's one-E approximation on top of that.
+    assert errors[1.0][0] < 0.6 and errors[1.0][1] < 1.0
+    assert errors[1000.0][0] <= errors[10.0][0] < errors[1.0][0]
+
+
+# ------------------------------------------------------------------------------ gradients
+
+
+@pytest.mark.slow
+def test_frame_psf_gradients_match_finite_differences_in_float64():
+    with x64():
+        # The components the five parameters live in (fewer components: a faster compile).
+        full = small_eye()
+        eye = dataclasses.replace(full, particles=(full.particles[1],))
+        # No blinks: the lids are rasterised once per sequence (no per-frame `lax.cond`, a
+        # much smaller float64 compile); the lashes' gradient still flows through them.
+        # Everything else moves (hippus, lens, vitreous).
+        dynamics = dataclasses.replace(moving_dynamics(), lids=LidMotion(interval_s=0.0))
+        m = TemporalGlare.build(eye, dynamics, npix=NPIX, key=11)
+        assert not m.lids_move
+        paths = (
+            lambda m: m.eye.pupil.diameter_mm,  # mean pupil (from_luminance = False)
+            lambda m: m.eye.particles[0].count,  # relaxed lens-particle count
+            lambda m: m.eye.particles[0].radius_mean_mm,  # particle size
+            lambda m: m.eye.gratings.spacing_mm,  # grating spacing
+            lambda m: m.eye.upper_lashes.thickness_mm,  # a lash parameter
+        )
+        x0 = jnp.array([5.0, 12.5, 0.12, 0.3, 0.12])
+        w = weights((NPIX, NPIX, 3))
+        state = m.init_state()
+
+        def loss(x):
+            mm = m
+            for i, path in enumerate(paths):
+                mm = eqx.tree_at(path, mm, x[i])
+            return jnp.sum(w * mm.psf(state))
+
+        # One compilation serves the gradient and the finite differences' values.
+        value_and_grad = jax.jit(jax.value_and_grad(loss))
+        grad = np.asarray(value_and_grad(x0)[1])
+        for i in range(len(paths)):
+            eps = 1e-6 * max(1.0, float(x0[i]))
+            e = jnp.zeros_like(x0).at[i].set(eps)
+            fd = float((value_and_grad(x0 + e)[0] - value_and_grad(x0 - e)[0]) / (2 * eps))
+            np.testing.assert_allclose(grad[i], fd, rtol=2e-4, atol=1e-9)
+            assert grad[i] != 0.0
+
+
+@pytest.mark.slow
+def test_sequence_gradient_wrt_hippus_amplitude_matches_finite_differences():
+    with x64():
+        # The pupil is what the hippus moves; one moving population keeps the scan realistic.
+        eye = EyeAperture(pupil=Pupil(5.0), particles=(small_eye().particles[1],))
+        m = TemporalGlare.build(eye, moving_dynamics(), npix=NPIX, key=11)
+        w = weights((3, NPIX, NPIX, 3), seed=1)
+
+        def loss(a):
+            mm = eqx.tree_at(lambda m: m.dynamics.pupil.hippus_amplitude_mm, m, a)
+            return jnp.sum(w * mm.psf_sequence(3)[1])
+
+        value_and_grad = jax.jit(jax.value_and_grad(loss))  # one compilation for both
+        a0, eps = 0.3, 1e-6
+        ad = float(value_and_grad(jnp.float64(a0))[1])
+        fd = float(
+            (value_and_grad(jnp.float64(a0 + eps))[0] - value_and_grad(jnp.float64(a0 - eps))[0])
+            / (2 * eps)
+        )
+        np.testing.assert_allclose(ad, fd, rtol=2e-4)
+        assert ad != 0.0
+
+
+# ------------------------------------------------------------------------------ transforms
+
+
+@pytest.mark.slow
+def test_vmap_over_pupil_diameters_equals_single_frames(model):
+    def with_diameter(d):
+        return eqx.tree_at(lambda m: m.eye.pupil.diameter_mm, model, d)
+
+    state = model.init_state()
+    ds = (4.0, 5.5)
+    batched = jax.jit(jax.vmap(lambda d: with_diameter(d).psf(state)))(jnp.array(ds))
+    for i in range(2):
+        # jnp.asarray(float) is weakly typed like the model's own diameter: PSF's
+        # compilation (shared with the other tests) is reused, not redone.
+        single = PSF(with_diameter(jnp.asarray(ds[i])), state)
+        np.testing.assert_allclose(batched[i], single, rtol=1e-5, atol=1e-9)
+    assert not np.allclose(batched[0], batched[1])
+
+
+# ------------------------------------------------------------------------------ render
+
+
+def test_render_sequence_gives_display_frames_and_conserves_light(light_model):
+    model = light_model
+    image = jnp.zeros((24, 24, 3)).at[12, 12].set(50.0) + 0.01
+    _, display = jax.jit(lambda m, im: render_sequence(m, im, 2))(model, image)
+    assert display.shape == (2, 24, 24, 3)
+    assert float(display.min()) >= 0.0 and float(display.max()) <= 1.0
+    # The convolution spreads each pixel's light by the PSF and keeps it: exactly so when
+    # circular (nothing leaves the frame), per channel the image's sum times the PSF's.
+    frame = jnp.asarray(np.random.default_rng(2).random((NPIX, NPIX, 3)))
+    psf = jnp.asarray(np.random.default_rng(3).random((3, NPIX, NPIX))) / NPIX**2
+
+    @jax.jit
+    def wrapped(m, im, p):
+        spectrum, glare = frame_convolver(m, im, None, True)
+        return glare(spectrum, p)
+
+    out = np.asarray(wrapped(model, frame, psf))
+    np.testing.assert_allclose(
+        out.sum(axis=(0, 1)), np.asarray(frame.sum(axis=(0, 1)) * psf.sum(axis=(1, 2))), rtol=1e-4
+    )
+    with pytest.raises(InputDataError, match="monochrome"):
+        render_sequence(model, jnp.ones((8, 8)), 2)
+    with pytest.raises(ConfigError, match="n_frames"):
+        render_sequence(model, image, 0)
+    with pytest.raises(InputDataError, match="wrap"):
+        render_sequence(model, image, 2, wrap=True)  # a 64 px PSF does not fit a 24 px frame
+
+
+def test_tone_map_is_plain_data_checked_by_the_render_tier(model):
+    # The model keeps the tone map's name and parameters; the render tier knows the operators.
+    filmic = dataclasses.replace(model, tonemap_name="filmic")
+    with pytest.raises(ConfigError, match=r"unknown tone map 'filmic'; valid names: .*gamma"):
+        render_sequence(filmic, jnp.ones((8, 8, 3)), 2)
+    gama = dataclasses.replace(model, tonemap_params=(("gama", 2.4),))
+    with pytest.raises(ConfigError, match=r"no parameter.*'gama'.*valid: .*gamma"):
+        render_frame(gama, jnp.ones((8, 8, 3)))
+    with pytest.raises(ConfigError, match="tonemap_params"):
+        TemporalGlare.build(small_eye(), npix=32, tonemap_params={"exposure": "bright"})
+    # Data flows one way: the model module imports nothing from the render tier.
+    import ast
+
+    import invglare.models.temporal as temporal
+
+    tree = ast.parse(open(temporal.__file__).read())
+    imported = [n.module for n in ast.walk(tree) if isinstance(n, ast.ImportFrom)]
+    imported += [a.name for n in ast.walk(tree) if isinstance(n, ast.Import) for a in n.names]
+    assert not [m for m in imported if m and m.startswith("invglare.render")], imported
+
+
+# ------------------------------------------------------------------------------ config
+
+
+def test_config_round_trip_and_errors(model):
+    table = temporal_to_config(model)
+    again = temporal_from_config(table)
+    assert temporal_to_config(again) == table
+    np.testing.assert_array_equal(jax.random.key_data(again.key), jax.random.key_data(model.key))
+    bad = {**table, "model": {**table["model"], "hippus": 1.0}}
+    with pytest.raises(ConfigError, match="'hippus'"):
+        temporal_from_config(bad)
+    dyn = {**table["model"]["dynamics"], "lens": {"stiffnes_per_s2": 3.0}}
+    with pytest.raises(ConfigError, match="stiffnes_per_s2"):
+        temporal_from_config({**table, "model": {**table["model"], "dynamics": dyn}})
+    with pytest.raises(ConfigError, match="pixel_scale_deg"):
+        temporal_from_config({**table, "output": {"npix": 64, "pixel_scale_deg": 0.01}})
+    with pytest.raises(PhysicsRangeError, match="fps"):
+        TemporalGlare.build(small_eye(), npix=32, fps=-1.0)
+    with pytest.raises(ConfigError, match="substeps"):
+        TemporalGlare.build(small_eye(), npix=32, fps=2.0)
+    with pytest.raises(PhysicsRangeError, match="lens"):
+        big_nucleus = dataclasses.replace(small_eye().particles[1], region_radius_mm=6.0)
+        TemporalGlare.build(EyeAperture(pupil=Pupil(4.0), particles=(big_nucleus,)), npix=32)
+
+
+# ------------------------------------------------------------------------------ command
+
+SMALL_CONFIG = """
+[model]
+kind = "temporal"
+aperture_npix = 32
+seed = 2
+[model.tonemap_params]
+exposure = 0.05
+[model.eye]
+seed = 3
+[model.eye.pupil]
+diameter_mm = 5.0
+[model.eye.lids]
+upper_opening_mm = 2.5
+lower_opening_mm = 2.5
+[model.dynamics.lids]
+interval_s = 0.5
+jitter = 0.0
+first_blink_s = 0.1
+[output]
+npix = 64
+[spectrum]
+wavelengths_nm = "380:770:8"
+"""
+
+
+@pytest.mark.slow
+def test_render_command_writes_mp4_and_exr_frames(tmp_path):
+    import imageio.v3 as iio
+    from typer.testing import CliRunner
+
+    from invglare.cli import app
+    from invglare.io.exr import read_exr
+
+    def invoke(*args):
+        return CliRunner().invoke(app, [str(a) for a in args])
+
+    cfg = tmp_path / "eye.toml"
+    cfg.write_text(SMALL_CONFIG)
+    scene = tmp_path / "candle.exr"
+    assert invoke("scene", "candle", "--npix", 32, "--out", scene).exit_code == 0
+    video = tmp_path / "glare.mp4"
+    result = invoke("render", scene, "--model", cfg, "--frames", 9, "--fps", 30, "--out", video)
+    assert result.exit_code == 0, result.output
+    frames = iio.imread(video)
+    assert frames.shape[0] == 9 and frames.shape[-1] == 3
+    brightness = frames.mean(axis=(1, 2, 3))
+    assert brightness.min() < 0.2 * np.median(brightness)  # the blink at 0.1-0.3 s
+    folder = tmp_path / "frames"
+    result = invoke("render", scene, "--model", cfg, "--frames", 2, "--out", folder)
+    assert result.exit_code == 0, result.output
+    files = sorted(folder.iterdir())
+    assert [f.name for f in files] == ["frame_00000.exr", "frame_00001.exr"]
+    first = read_exr(files[0])
+    assert first.config["model"]["kind"] == "temporal" and first.data.shape == (32, 32, 3)
+    assert not any(p.name.startswith(".") for p in tmp_path.iterdir())  # nothing half-written
+    bad = invoke("render", scene, "--model", cfg, "--frames", 2, "--out", tmp_path / "x.avi")
+    assert bad.exit_code == 2 and ".mp4 or .gif" in bad.output
+    static = tmp_path / "static.toml"
+    static.write_text(
+        '[model]\nkind = "aperture"\nfocal_length_mm = 17.0\n'
+        '[[model.shapes]]\nkind = "disk"\ndiameter_mm = 3.0\n'
+    )
+    bad = invoke("render", scene, "--model", static, "--frames", 2, "--out", video)
+    assert bad.exit_code == 2 and "temporal" in bad.output
