@@ -19,7 +19,7 @@ from scipy.integrate import quad
 from scipy.special import j1
 from scipy.stats import ncx2
 
-from invglare.errors import ConfigError, PhysicsRangeError
+from invglare.errors import ConfigError, InputDataError, PhysicsRangeError
 from invglare.models.veiling import GhostSet, LensGhosts, VeilingGlare, veiling_glare_index
 from invglare.models.veiling_config import (
     bundled_lenses,
@@ -686,3 +686,53 @@ def test_bad_inputs_raise_documented_errors():
         )
     with pytest.raises(PhysicsRangeError, match="index"):
         Lens.from_radii([10.0, -10.0], [2.0, 10.0], [0.5, 1.0], [3, 3], stop_index=0)
+
+
+def test_render_ghosts_adds_each_lights_veiling_image_and_keeps_the_light():
+    """Ghosts of a bright pixel: its own veiling image, scaled; the light they take leaves it."""
+    from invglare.io.config import load_toml
+    from invglare.io.model_config import build_model
+    from invglare.render import bright_pixel_list
+    from invglare.render.ghost_frames import render_ghosts
+
+    config = load_toml(EXAMPLES / "veiling_ghosts.toml")
+    model = build_model(config, npix=(48, 64), pixel_scale_deg=0.25)
+    scene = np.full((48, 64), 0.01, np.float32)
+    scene[30, 40] = 1000.0  # a light at (+8, +6) px from the centre (24, 32)
+    bright = bright_pixel_list(scene, 100.0, 4)
+    out = np.asarray(render_ghosts(model, scene, bright, pixel_scale_deg=0.25))
+    angle = np.array([8 * 0.25, 6 * 0.25])
+    ghost = 1000.0 * np.asarray(model(angle))
+    direct = float(model.direct_fraction(angle))
+    expected = scene + ghost
+    expected[30, 40] -= 1000.0 * (1.0 - direct)
+    np.testing.assert_allclose(out, expected, rtol=1e-4, atol=1e-4 * ghost.max())
+    assert 0.0 < ghost.sum() < 1000.0 * (1.0 - direct) + 1e-3  # ghosts hold no more than left
+    rgb = np.repeat(scene[..., None], 3, axis=-1) * np.array([1.0, 0.5, 0.25], np.float32)
+    out_rgb = np.asarray(render_ghosts(model, rgb, bright_pixel_list(rgb, 10.0, 4), 0.25))
+    np.testing.assert_allclose(out_rgb[..., 1], 0.5 * out, rtol=1e-4, atol=1e-4 * ghost.max())
+    with pytest.raises(InputDataError, match="build the model on the image's grid"):
+        render_ghosts(model, scene[:40], bright, pixel_scale_deg=0.25)
+
+
+def test_render_command_adds_ghosts_to_a_scene(tmp_path):
+    """`invglare render` with a veiling config: ghosts on the scene's grid, EXR stays linear."""
+    from typer.testing import CliRunner
+
+    from invglare.cli import app
+    from invglare.io.exr import read_exr, write_exr
+
+    scene = np.full((40, 56), 0.01, np.float32)
+    scene[12, 20] = 500.0
+    write_exr(tmp_path / "scene.exr", scene, pixel_scale_deg=0.25)
+    args = ["render", str(tmp_path / "scene.exr"), "--model", str(EXAMPLES / "veiling_ghosts.toml")]
+    result = CliRunner().invoke(app, [*args, "--out", str(tmp_path / "out.exr")])
+    assert result.exit_code == 0, result.output
+    out = read_exr(tmp_path / "out.exr")
+    assert out.data.shape == (40, 56) and out.config["model"]["kind"] == "veiling"
+    ghosts = out.data - scene
+    ghosts[12, 20] = 0.0
+    assert ghosts.min() >= 0.0 and ghosts.sum() > 1e-3  # light added around, none taken
+    assert out.data[12, 20] < 500.0  # the light that went into ghosts left the source
+    result = CliRunner().invoke(app, [*args, "--out", str(tmp_path / "out.png")])
+    assert result.exit_code == 0 and (tmp_path / "out.png").is_file()
