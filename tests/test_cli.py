@@ -187,7 +187,7 @@ def test_psf_missing_config_file(tmp_path):
 def test_bench_writes_records_with_ratios(tmp_path):
     result = invoke("bench", "psf_mono", "--sizes", "32", "--repeats", "3", "--out-dir", tmp_path)
     assert result.exit_code == 0, result.output
-    records = json.loads((tmp_path / "bench.json").read_text())
+    records = json.loads((tmp_path / "bench.json").read_text())["records"]
     names = {r["case"] for r in records}
     assert {"fft_floor_scipy", "psf_mono", "psf_mono_grad"} <= names
     for r in records:

@@ -4,6 +4,12 @@
 N x N diffraction pipeline must do; *pipeline* cases are compared with the
 fastest floor measured in the same run. Later models add their cases to
 :data:`CASES`.
+
+N is the output size; apertures are rasterised on N/2 x N/2 grids (the FFT pads
+them to N, the Nyquist sampling of the PSF). Everything runs in float32, the
+rendering precision. A gradient case differentiates a weighted sum of its forward
+case's output (fixed random weights, so no entry of the output is special) and
+records the ratio to that forward case (`vs_forward`).
 """
 
 from __future__ import annotations
@@ -125,6 +131,108 @@ def _convolve_gradient(n: int):
     return lambda: grad(psf)
 
 
+def _weights(shape: tuple[int, ...], seed: int):
+    """Fixed random weights for the scalar a gradient case differentiates."""
+    import jax.numpy as jnp
+
+    return jnp.asarray(np.random.default_rng(seed).random(shape), jnp.float32)
+
+
+def _night_eye_on_grid(n: int):
+    """The full night eye with its stamp windows fixed for an N/2 grid (so it jits)."""
+    from invglare.aperture.eye import night_eye
+    from invglare.optics.sampling import ApertureGrid
+
+    eye = night_eye(0)
+    # The pupil plus 2 %: the transmission is 0 outside the pupil, so a wider window
+    # would only coarsen the raster.
+    grid = ApertureGrid.from_width(n // 2, 1.02 * eye.extent_mm())
+    return eye.with_stamp_windows(grid), grid
+
+
+def _eye_raster(n: int):
+    import equinox as eqx
+
+    eye, grid = _night_eye_on_grid(n)
+    raster = eqx.filter_jit(lambda e, g: e.transmission(g))
+    return lambda: raster(eye, grid)
+
+
+def _eye_raster_gradient(n: int):
+    import equinox as eqx
+    import jax.numpy as jnp
+
+    eye, grid = _night_eye_on_grid(n)
+    weights = _weights((n // 2, n // 2), 3)
+
+    # Every float leaf of the eye (pupil, lids, lash / particle / grating counts and
+    # sizes); the random keys are not floats and are left alone by filter_grad.
+    @eqx.filter_jit
+    @eqx.filter_grad
+    def grad(e, g):
+        return jnp.sum(e.transmission(g) * weights)
+
+    return lambda: grad(eye, grid)
+
+
+def _kakimoto_eye(n: int):
+    """Kakimoto glare of the daylight eye, monochrome at 550 nm, N output, N/2 aperture."""
+    from invglare.aperture.eye import daylight_eye
+    from invglare.models.kakimoto import KakimotoGlare
+
+    return KakimotoGlare.build(
+        daylight_eye(0),
+        focal_length_mm=17.0,
+        obstacle_distance_mm=8.0,
+        npix=n,
+        aperture_npix=n // 2,
+        colour="spectral",
+        wavelengths_nm=550.0,
+    )
+
+
+def _kakimoto_eye_forward(n: int):
+    import equinox as eqx
+
+    model = _kakimoto_eye(n)
+    forward = eqx.filter_jit(lambda m: m())
+    return lambda: forward(model)
+
+
+def _kakimoto_eye_gradient(n: int):
+    import equinox as eqx
+    import jax.numpy as jnp
+
+    model = _kakimoto_eye(n)
+    weights = _weights((n, n), 4)
+
+    # With respect to every float leaf of the eye aperture (what a fit frees), not the
+    # propagator's sampling or the spectrum.
+    @eqx.filter_jit
+    @eqx.filter_grad
+    def grad(aperture, m):
+        return jnp.sum(eqx.tree_at(lambda mm: mm.aperture, m, aperture)() * weights)
+
+    return lambda: grad(model.aperture, model)
+
+
+def _kakimoto_camera_rgb(n: int):
+    import equinox as eqx
+
+    from invglare.aperture.camera import CameraAperture, CrossScreen, Diaphragm
+    from invglare.models.kakimoto import KakimotoGlare
+
+    camera = CameraAperture(
+        Diaphragm(6, f_number=8.0, focal_length_mm=50.0),
+        filter=CrossScreen((0.0, 90.0), spacing_mm=0.2, duty_cycle=0.1),
+    )
+    model = KakimotoGlare.build(
+        camera, focal_length_mm=50.0, obstacle_distance_mm=20.0, npix=n, aperture_npix=n // 2
+    )
+    forward = eqx.filter_jit(lambda m: m())
+    return lambda: forward(model)
+
+
 CASES: tuple[Case, ...] = (
     Case("fft_floor_scipy", "floor", "scipy.fft.fft2, complex64, 2 workers", _scipy_fft),
     Case("fft_floor_pyfftw", "floor", "pyfftw fft2, complex64, 2 threads", _pyfftw_fft),
@@ -154,5 +262,39 @@ CASES: tuple[Case, ...] = (
         "gradient of a loss of convolve_rgb w.r.t. the PSF",
         _convolve_gradient,
         forward="convolve_rgb",
+    ),
+    Case(
+        "eye_raster",
+        "pipeline",
+        "night_eye transmission P*t_o (pupil, lids, 80 lashes, 1000 particles, 200 gratings) "
+        "on an N/2 grid, stamp windows fixed, jitted",
+        _eye_raster,
+    ),
+    Case(
+        "eye_raster_grad",
+        "pipeline",
+        "d(sum w * transmission)/d(every float leaf of the night eye)",
+        _eye_raster_gradient,
+        forward="eye_raster",
+    ),
+    Case(
+        "kakimoto_eye_psf",
+        "pipeline",
+        "KakimotoGlare of daylight_eye (fixed mask), 550 nm mono: N/2 raster + FFT to N",
+        _kakimoto_eye_forward,
+    ),
+    Case(
+        "kakimoto_eye_psf_grad",
+        "pipeline",
+        "d(sum w * PSF)/d(every float leaf of the daylight eye) of kakimoto_eye_psf",
+        _kakimoto_eye_gradient,
+        forward="kakimoto_eye_psf",
+    ),
+    Case(
+        "kakimoto_camera_rgb",
+        "pipeline",
+        "KakimotoGlare of a 6-blade f/8 50 mm camera + 2-way cross screen, paper_rgb "
+        "(680/530/460 nm): N/2 raster + 3 FFTs to N",
+        _kakimoto_camera_rgb,
     ),
 )

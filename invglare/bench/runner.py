@@ -1,4 +1,15 @@
-"""``invglare bench``: time every case at every size and write reports/bench.{md,json}."""
+"""``invglare bench``: time every case at every size, run the fit benchmark, write reports.
+
+Two kinds of record go to ``reports/bench.json`` (``{"meta", "records", "fit"}``) and
+``reports/bench.md``:
+
+- **per-size timings** (:data:`invglare.bench.cases.CASES`), each with its ratio to the
+  fastest bare FFT of the same size measured in the same run;
+- **fit benchmarks** (:data:`invglare.bench.fit.FIT_CASES`), run once (not per size):
+  invglare's fit against scipy's finite-difference least squares, side by side.
+
+Speed is only ever reported as ratios of times measured in the same run, never asserted.
+"""
 
 from __future__ import annotations
 
@@ -6,73 +17,230 @@ import datetime as dt
 import logging
 import os
 import platform
+import time
+import traceback
 from pathlib import Path
+from typing import Any
 
 from tqdm import tqdm
 
-from invglare.bench.cases import CASES, Case
-from invglare.bench.timing import time_ms
+from invglare.bench.cases import CASES as STATIC_CASES
+from invglare.bench.cases import Case
+from invglare.bench.fit import FIT_CASES
+from invglare.bench.temporal_cases import TEMPORAL_CASES
+from invglare.bench.timing import load_1m, measure
 from invglare.errors import ConfigError
 
 log = logging.getLogger("invglare")
 
+#: Seconds of timed repeats per case and size, after which timing stops (>= 3 repeats).
+BUDGET_S = 20.0
 
-def _select(patterns: list[str]) -> list[Case]:
-    if not patterns:
-        return list(CASES)
-    chosen = [c for c in CASES if c.kind == "floor" or any(p in c.name for p in patterns)]
-    if all(c.kind == "floor" for c in chosen):
-        names = ", ".join(c.name for c in CASES)
-        raise ConfigError(f"no benchmark case matches {patterns}; cases: {names}")
-    return chosen
+#: Per-size cases that run with every selection, like the floors: the ratios use them.
+REFERENCES = ("fft_jax",)
+#: Every per-size case: the static models, then the temporal model's frame pipeline.
+CASES: tuple[Case, ...] = (*STATIC_CASES, *TEMPORAL_CASES)
+
+#: Header notes of bench.md (also in bench.json's meta).
+NOTES = (
+    "JAX's CPU FFT (ducc) runs on one thread (jax issue #14664, "
+    "https://github.com/jax-ml/jax/issues/14664), while the scipy and pyfftw floors use 2 "
+    "threads: the `fft_jax` row shows what that costs here, and `vs jax fft` compares each "
+    "case with JAX's own bare FFT of the same size instead of the floor.",
+    "The machine is shared: `load` is the 1-minute load average when the case was timed "
+    "(2 cores; above 2, other processes competed for them) and `cpu/wall` the process's CPU "
+    "time over wall time while timing (below 1: the case waited for a core). Ratios compare "
+    "times taken in the same run, so load affects both sides, but not necessarily equally.",
+    "`first call s` is the first call of the case: tracing, XLA compilation and one run.",
+)
 
 
-def run_bench(patterns: list[str], out_dir: Path, sizes: list[int], repeats: int) -> list[dict]:
-    """Run the selected cases (floors always run: every ratio needs them) and write reports."""
+def select(patterns: list[str], skip: list[str] | None = None) -> tuple[list[Case], list[str]]:
+    """The per-size cases and fit benchmarks to run.
+
+    A case runs when its name contains one of `patterns` (all cases without patterns)
+    and none of `skip`. The floors and :data:`REFERENCES` are never skipped and run
+    whenever a per-size pipeline case does: the ratios need them.
+
+    **Raises:** `ConfigError` listing the cases when nothing is left to run.
+    """
+    skip = list(skip or [])
+
+    def wanted(name: str) -> bool:
+        chosen = not patterns or any(p in name for p in patterns)
+        return chosen and not any(s in name for s in skip)
+
+    pipelines = [c for c in CASES if c.kind != "floor" and wanted(c.name)]
+    # The references every ratio is taken against run with any pipeline.
+    always = [c for c in CASES if c.kind == "floor" or c.name in REFERENCES]
+    cases = [c for c in CASES if c in pipelines or (pipelines and c in always)]
+    fits = [name for name in FIT_CASES if wanted(name)]
+    if not pipelines and not fits:
+        names = ", ".join([c.name for c in CASES] + list(FIT_CASES))
+        raise ConfigError(
+            f"no benchmark case matches {patterns}"
+            + (f" once {skip} are skipped" if skip else "")
+            + f"; cases: {names}"
+        )
+    return cases, fits
+
+
+def _meta() -> dict[str, Any]:
     import jax
 
+    return {
+        "date": dt.datetime.now(dt.UTC).strftime("%Y-%m-%d %H:%M UTC"),
+        "machine": f"{platform.machine()}, {os.cpu_count()} cores, Python "
+        f"{platform.python_version()}",
+        "jax": f"{jax.__version__} ({jax.default_backend()})",
+        "xla_flags": os.environ.get("XLA_FLAGS", ""),
+        "notes": list(NOTES),
+    }
+
+
+def run_bench(
+    patterns: list[str],
+    out_dir: Path,
+    sizes: list[int],
+    repeats: int,
+    *,
+    skip: list[str] | None = None,
+    fit_npix: int = 128,
+    budget_s: float = BUDGET_S,
+) -> list[dict]:
+    """Run the selected cases (floors always run with them) and write the reports.
+
+    **Arguments:**
+
+    - `patterns`, `skip`: which cases, see :func:`select`.
+    - `out_dir`: where ``bench.md`` and ``bench.json`` go (written atomically; while the
+      run is going, ``bench.partial.json`` holds what is done so far).
+    - `sizes`: the N of the per-size cases (even, >= 16).
+    - `repeats`: timed calls per case at N <= 512, fewer at larger N, and at most
+      `budget_s` seconds of them (at least 3).
+    - `fit_npix`: photo size of the fit benchmark.
+
+    **Returns:** the per-size records (the fit records are in bench.json's ``"fit"``).
+
+    **Raises:** `ConfigError` for bad sizes or patterns; `RuntimeError` naming the cases
+    that failed (after writing the reports of the others).
+    """
     from invglare.io.atomic import write_json_atomic, write_text_atomic
 
-    if any(n < 16 or n % 2 for n in sizes):
+    if not sizes or any(n < 16 or n % 2 for n in sizes):
         raise ConfigError(f"bench sizes must be even and >= 16, got {sizes}")
-    cases = _select(patterns)
+    if repeats < 1:
+        raise ConfigError(f"bench repeats must be >= 1, got {repeats}")
+    cases, fits = select(patterns, skip)
+    out_dir = Path(out_dir)
+    partial = out_dir / "bench.partial.json"
+    meta = _meta()
+    meta["load_1m_start"] = load_1m()
+    started = time.perf_counter()
     records: list[dict] = []
+    fit_records: list[dict] = []
+    failed: list[str] = []
+
+    def save_partial() -> None:
+        write_json_atomic(partial, {"meta": meta, "records": records, "fit": fit_records})
+
     jobs = [(case, n) for n in sizes for case in cases]
     for case, n in tqdm(jobs, desc="bench", unit="case", disable=None):
-        fn = case.make(n)
-        if fn is None:
-            log.info("skipping %s: not installed here", case.name)
+        try:
+            fn = case.make(n)
+            if fn is None:
+                log.info("skipping %s: not installed here", case.name)
+                continue
+            # Fewer repeats at large sizes keep the whole run to minutes.
+            reps = max(3, repeats // max(1, (n // 512) ** 2))
+            timing = measure(fn, reps, budget_s=budget_s)
+        except Exception as err:  # one broken case must not lose the others' results
+            log.error("bench case %s at N=%d failed:\n%s", case.name, n, traceback.format_exc())
+            failed.append(f"{case.name} (N={n}): {type(err).__name__}: {err}")
             continue
-        # Fewer repeats at large sizes keep the whole run to a few minutes.
-        reps = max(3, repeats // max(1, (n // 512) ** 2))
-        median, best = time_ms(fn, reps)
         records.append(
             {
                 "case": case.name,
                 "kind": case.kind,
                 "size": n,
-                "median_ms": round(median, 4),
-                "min_ms": round(best, 4),
-                "repeats": reps,
+                "median_ms": round(timing.median_ms, 4),
+                "min_ms": round(timing.min_ms, 4),
+                "repeats": timing.repeats,
+                "first_call_s": round(timing.first_call_s, 4),
+                "cpu_per_wall": round(timing.cpu_per_wall, 2),
+                "load_1m": load_1m(),
                 "description": case.description,
                 "forward": case.forward,
             }
         )
+        save_partial()
     _add_ratios(records)
-    meta = {
-        "date": dt.datetime.now(dt.UTC).strftime("%Y-%m-%d %H:%M UTC"),
-        "machine": f"{platform.machine()}, {os.cpu_count()} cores, {platform.python_version()}",
-        "jax": f"{jax.__version__} ({jax.default_backend()})",
-    }
-    out_dir = Path(out_dir)
-    write_json_atomic(out_dir / "bench.json", records)
-    write_text_atomic(out_dir / "bench.md", render_markdown(records, meta))
+
+    for name in fits:
+        from invglare.bench.fit import as_json, fit_daylight_eye
+
+        log.info("running the fit benchmark %s at %d px (several minutes)", name, fit_npix)
+        try:
+            fit_records.append(as_json(fit_daylight_eye(fit_npix)))
+        except Exception as err:
+            log.error("fit benchmark %s failed:\n%s", name, traceback.format_exc())
+            failed.append(f"{name}: {type(err).__name__}: {err}")
+        save_partial()
+
+    meta["load_1m_end"] = load_1m()
+    meta["wall_s"] = round(time.perf_counter() - started, 1)
+    meta["failed"] = failed
+    records, fit_records, meta = _keep_previous(out_dir / "bench.json", records, fit_records, meta)
+    write_json_atomic(
+        out_dir / "bench.json", {"meta": meta, "records": records, "fit": fit_records}
+    )
+    write_text_atomic(out_dir / "bench.md", render_markdown(records, meta, fit_records))
+    partial.unlink(missing_ok=True)
     log.info("wrote %s and %s", out_dir / "bench.md", out_dir / "bench.json")
+    if failed:
+        raise RuntimeError("benchmark cases failed: " + "; ".join(failed))
     return records
 
 
+def _keep_previous(
+    path: Path, records: list[dict], fit_records: list[dict], meta: dict
+) -> tuple[list[dict], list[dict], dict]:
+    """Carry over the sections of an existing bench.json that this run did not measure.
+
+    The per-size timings are one section (their ratios need one run), kept whole when no
+    per-size case ran; fit records are kept per fit case (each is self-contained and
+    carries its own date and load). So ``invglare bench fit`` refreshes the fit section
+    and leaves the timings, and ``invglare bench --skip fit`` the other way round.
+    """
+    import json
+
+    if not path.is_file():
+        return records, fit_records, meta
+    try:
+        old = json.loads(path.read_text())
+    except (OSError, ValueError) as err:
+        log.warning("not keeping anything of %s: %s", path, err)
+        return records, fit_records, meta
+    if not isinstance(old, dict) or not isinstance(old.get("records"), list):
+        return records, fit_records, meta  # an older format: nothing to carry over
+    if not records and old["records"]:
+        records = old["records"]
+        meta = {**meta, "timings_from": old.get("meta", {})}
+        log.info("kept the per-size timings of %s (measured %s)", path, old["meta"].get("date"))
+    ran = {r["case"] for r in fit_records}
+    kept = [r for r in old.get("fit", []) if isinstance(r, dict) and r.get("case") not in ran]
+    return records, kept + fit_records, meta
+
+
 def _add_ratios(records: list[dict]) -> None:
-    """ratio = median / fastest floor at the same size; gradients also get vs_forward."""
+    """Ratios from the records themselves (in place).
+
+    - ``ratio``: median over the fastest floor (kind ``"floor"``) at the same size;
+    - ``vs_jax_fft``: median over ``fft_jax`` at the same size (JAX's own FFT);
+    - ``vs_forward``: a gradient's median over its forward case's at the same size.
+
+    Each is None where its reference was not measured.
+    """
     floors: dict[int, float] = {}
     for r in records:
         if r["kind"] == "floor":
@@ -82,29 +250,83 @@ def _add_ratios(records: list[dict]) -> None:
         floor = floors.get(r["size"])
         r["floor_ms"] = floor
         r["ratio"] = round(r["median_ms"] / floor, 3) if floor else None
-        fwd = by_key.get((r["forward"], r["size"])) if r["forward"] else None
+        jfft = by_key.get(("fft_jax", r["size"]))
+        r["vs_jax_fft"] = round(r["median_ms"] / jfft["median_ms"], 3) if jfft else None
+        fwd = by_key.get((r["forward"], r["size"])) if r.get("forward") else None
         r["vs_forward"] = round(r["median_ms"] / fwd["median_ms"], 3) if fwd else None
 
 
-def render_markdown(records: list[dict], meta: dict) -> str:
+def _num(x: float | None, fmt: str) -> str:
+    return "" if x is None else format(x, fmt)
+
+
+def render_markdown(records: list[dict], meta: dict, fit_records: list[dict] | None = None) -> str:
+    """bench.md: notes, a ratio overview (case x N), the full table, the fit section."""
+    from invglare.bench.fit import fit_markdown
+
     lines = [
         "# invglare benchmarks",
         "",
-        f"Measured {meta['date']} on {meta['machine']}; JAX {meta['jax']}.",
+        f"Measured {meta['date']} on {meta['machine']}; JAX {meta['jax']}. Load average "
+        f"(1 min) {meta.get('load_1m_start')} at the start, {meta.get('load_1m_end')} at the "
+        f"end; the run took {meta.get('wall_s', '?')} s.",
         "",
-        "`ratio` is the case's median time over the fastest bare complex64 FFT of the same",
-        "size measured in this run (`floor_ms`); `vs_forward` is a gradient's time over its",
-        "forward pass. Times are medians of repeated calls after compilation.",
+        *[f"- {note}" for note in meta.get("notes", [])],
         "",
-        "| case | N | median ms | floor ms | ratio | vs forward | what |",
-        "|---|---:|---:|---:|---:|---:|---|",
     ]
-    for r in records:
-        vs = f"{r['vs_forward']:.2f}" if r["vs_forward"] else ""
-        ratio = f"{r['ratio']:.2f}" if r["ratio"] else ""
-        floor = f"{r['floor_ms']:.3f}" if r["floor_ms"] else ""
-        lines.append(
-            f"| {r['case']} | {r['size']} | {r['median_ms']:.3f} | {floor} | {ratio} | {vs} "
-            f"| {r['description']} |"
-        )
+    earlier = meta.get("timings_from")
+    if earlier:
+        lines += [
+            f"The per-size timings below are from an earlier run ({earlier.get('date')}, load "
+            f"{earlier.get('load_1m_start')} to {earlier.get('load_1m_end')}, "
+            f"{earlier.get('wall_s', '?')} s); this run only refreshed the fit section.",
+            "",
+        ]
+    if records:
+        sizes = sorted({r["size"] for r in records})
+        names = list(dict.fromkeys(r["case"] for r in records))
+        by_key = {(r["case"], r["size"]): r for r in records}
+        lines += [
+            "## Ratio to the FFT floor",
+            "",
+            "Median time over the fastest bare complex64 FFT of the same size (scipy or "
+            "pyfftw, 2 threads) measured in this run.",
+            "",
+            "| case | " + " | ".join(f"N={n}" for n in sizes) + " |",
+            "|---|" + "---:|" * len(sizes),
+        ]
+        for name in names:
+            cells = []
+            for n in sizes:
+                r = by_key.get((name, n))
+                cells.append(_num(r["ratio"], ".2f") if r else "")
+            lines.append(f"| {name} | " + " | ".join(cells) + " |")
+        lines += [
+            "",
+            "## All timings",
+            "",
+            "`vs jax fft`: over JAX's bare FFT of the same size; `vs forward`: a gradient "
+            "over its forward pass. Medians of repeated calls after compilation.",
+            "",
+            "| case | N | median ms | floor ms | ratio | vs jax fft | vs forward "
+            "| first call s | repeats | cpu/wall | load |",
+            "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
+        ]
+        for r in records:
+            lines.append(
+                f"| {r['case']} | {r['size']} | {r['median_ms']:.3f} "
+                f"| {_num(r['floor_ms'], '.3f')} | {_num(r['ratio'], '.2f')} "
+                f"| {_num(r.get('vs_jax_fft'), '.2f')} | {_num(r['vs_forward'], '.2f')} "
+                f"| {_num(r.get('first_call_s'), '.2f')} | {r.get('repeats', '')} "
+                f"| {_num(r.get('cpu_per_wall'), '.2f')} | {_num(r.get('load_1m'), '.1f')} |"
+            )
+        lines += ["", "Cases:", ""]
+        descriptions = {r["case"]: r.get("description", "") for r in records}
+        lines += [f"- `{name}`: {descriptions[name]}" for name in names]
+    failures = list(meta.get("failed", [])) + list((earlier or {}).get("failed", []))
+    if failures:
+        lines += ["", "## Failed cases", ""]
+        lines += [f"- {failure}" for failure in failures]
+    for record in fit_records or []:
+        lines += ["", *fit_markdown(record)]
     return "\n".join(lines) + "\n"

@@ -1,7 +1,9 @@
-"""Wall-clock timing of jitted callables: warm up (compile), then the median of repeats."""
+"""Wall-clock timing of jitted callables: the first call (compile), then the median of repeats."""
 
 from __future__ import annotations
 
+import dataclasses
+import os
 import statistics
 import time
 from collections.abc import Callable
@@ -15,12 +17,75 @@ def _block(result):
     )
 
 
-def time_ms(fn: Callable[[], object], repeats: int, warmup: int = 2) -> tuple[float, float]:
-    """Median and minimum wall time of ``fn()`` in ms, after `warmup` untimed calls.
+def load_1m() -> float | None:
+    """The 1-minute load average (None where the OS has none): how busy the machine was."""
+    try:
+        return round(os.getloadavg()[0], 2)
+    except (AttributeError, OSError):
+        return None
 
-    JAX results are waited for (``block_until_ready``), so asynchronous dispatch
-    does not hide the work.
+
+@dataclasses.dataclass(frozen=True)
+class Timing:
+    """What :func:`measure` found.
+
+    - `median_ms`, `min_ms`: over the timed repeats, after compilation.
+    - `first_call_s`: the first call, i.e. tracing + compilation + one run.
+    - `repeats`: how many calls were timed (fewer than asked when the budget ran out).
+    - `cpu_per_wall`: process CPU time over wall time during the timed repeats; about 1
+      for single-threaded work on an idle machine, up to the thread count for
+      multi-threaded work, and below 1 when other processes take the cores.
     """
+
+    median_ms: float
+    min_ms: float
+    first_call_s: float
+    repeats: int
+    cpu_per_wall: float
+
+
+def measure(
+    fn: Callable[[], object], repeats: int, budget_s: float | None = None, min_repeats: int = 3
+) -> Timing:
+    """Time ``fn()``: a first call (compilation, reported apart), a warm-up, then the repeats.
+
+    JAX results are waited for (``block_until_ready``), so asynchronous dispatch does
+    not hide the work. A second warm-up call runs only when the first was quick (< 1 s):
+    it settles caches (FFT plans, allocator) and costs nothing noticeable, whereas for
+    a case taking seconds per call it would double the run for no information.
+
+    **Arguments:**
+
+    - `repeats`: calls to time at most.
+    - `budget_s`: stop timing once this many seconds of repeats are spent (after at
+      least `min_repeats` calls); None for no limit.
+    """
+    start = time.perf_counter()
+    _block(fn())
+    first = time.perf_counter() - start
+    if first < 1.0:
+        _block(fn())
+    times: list[float] = []
+    cpu0, wall0 = time.process_time(), time.perf_counter()
+    for i in range(max(repeats, 1)):
+        if budget_s is not None and i >= min_repeats and sum(times) / 1e3 > budget_s:
+            break
+        t0 = time.perf_counter()
+        _block(fn())
+        times.append((time.perf_counter() - t0) * 1e3)
+    wall = time.perf_counter() - wall0
+    cpu = time.process_time() - cpu0
+    return Timing(
+        median_ms=statistics.median(times),
+        min_ms=min(times),
+        first_call_s=first,
+        repeats=len(times),
+        cpu_per_wall=cpu / wall if wall > 0 else float("nan"),
+    )
+
+
+def time_ms(fn: Callable[[], object], repeats: int, warmup: int = 2) -> tuple[float, float]:
+    """Median and minimum wall time of ``fn()`` in ms, after `warmup` untimed calls."""
     for _ in range(warmup):
         _block(fn())
     times = []

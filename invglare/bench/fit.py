@@ -1,0 +1,465 @@
+"""The fit benchmark: invglare's Levenberg–Marquardt against finite-difference least squares.
+
+One synthetic problem, solved side by side in the same process:
+
+- **the photo**: the daylight eye of ``examples/eye_daylight.toml`` (Kakimoto glare, fixed
+  mask, 550 nm) on an `npix` x `npix` grid, turned into counts by an
+  :class:`~invglare.fit.Observation` (flux 1e7, background 20, gain 2, read noise 3) and
+  sampled with a fixed key;
+- **the free parameters**: pupil diameter, upper-lash count, source flux and background.
+  The lash count starts at a non-integer (39.4 for a truth of 40): a relaxed count has a
+  zero derivative at every integer (:mod:`invglare.aperture.eye`), so a local solver
+  moves it within one integer step, not across several;
+- **invglare**: :func:`invglare.fit.fit` in float64 (LM with forward-mode Jacobians),
+  with its compile and solve times reported apart;
+- **scipy**: ``scipy.optimize.least_squares(method="trf", jac="2-point")`` on the *same*
+  jitted residual function (:func:`invglare.fit.make_residual_fn`) from the same start,
+  in float64; then the same in float32, once with scipy's default difference step (made
+  for float64) and once with the float32-sized step ``sqrt(eps_float32)``. The float32
+  model fits a photo made by the float32 model: the eye draws its random elements in
+  its own dtype, and `jax.random` draws differ between float32 and float64 for one key,
+  so the float32 eye is a different eye.
+
+"Time to the same loss" is measured for both solvers from the moment their compiled
+residuals start running (compilation excluded on both sides; reported separately): for
+scipy from a log of every residual evaluation, for invglare from host timestamps of its
+accepted steps. The target is the lower of the two float64 final losses, relaxed by
+:data:`LOSS_RTOL`.
+"""
+
+from __future__ import annotations
+
+import copy
+import datetime as dt
+import math
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Float
+
+from invglare.bench.timing import load_1m, measure
+from invglare.errors import ConfigError
+
+#: Names of the fit benchmarks, selectable like the per-size cases (``invglare bench fit``).
+FIT_CASES = ("fit_daylight_eye",)
+
+DIAMETER = "model.aperture.pupil.diameter_mm"
+LASHES = "model.aperture.upper_lashes.count"
+#: The photo's parameters (diameter and lash count as in examples/eye_daylight.toml).
+TRUTH = {DIAMETER: 3.0, LASHES: 40.0, "obs.flux": 1e7, "obs.background": 20.0}
+#: Where both solvers start (flux and background come from the photo, as a user would).
+START = {DIAMETER: 3.4, LASHES: 39.4}
+#: Two losses are "the same" within this relative difference (a chi-square of 16 000 to 0.016).
+LOSS_RTOL = 1e-6
+#: The same for the float32 runs: a float32 sum of 16 000 squares resolves about 1e-6 of
+#: itself, and their reference is only close to (not at) their own optimum.
+LOSS_RTOL_32 = 1e-4
+#: Aperture window (mm) when the config gives none: room for the largest pupil the bounds
+#: allow (4 mm) plus margin, so that truth and every trial diameter share one grid.
+WINDOW_MM = 4.2
+NOISE = {"gain": 2.0, "read_noise": 3.0}
+
+DEFAULT_CONFIG = Path(__file__).resolve().parents[2] / "examples" / "eye_daylight.toml"
+
+
+def _config(path: Path, npix: int) -> dict[str, Any]:
+    from invglare.io.config import load_toml
+
+    path = Path(path)
+    if not path.is_file():
+        raise ConfigError(
+            f"the fit benchmark builds its eye from {path}, which does not exist "
+            "(examples/eye_daylight.toml of the invglare repository)"
+        )
+    config = copy.deepcopy(load_toml(path))
+    model = config.setdefault("model", {})
+    model["aperture_npix"] = npix
+    # The example fixes a window with room for the pupils a fit may try; without one, the
+    # window would follow the start's pupil and differ from the truth's.
+    model.setdefault("window_mm", WINDOW_MM)
+    config.setdefault("output", {})["npix"] = npix
+    # The fit needs a monochrome PSF.
+    config.setdefault("spectrum", {})["wavelengths_nm"] = 550.0
+    return config
+
+
+def _with(model, values: dict[str, float]):
+    """`model` with its pupil diameter and upper-lash count from `values` (leaf dtypes kept)."""
+    for get, path in (
+        (lambda m: m.aperture.pupil.diameter_mm, DIAMETER),
+        (lambda m: m.aperture.upper_lashes.count, LASHES),
+    ):
+        model = eqx.tree_at(get, model, jnp.asarray(values[path], dtype=get(model).dtype))
+    return model
+
+
+def _problem(config: dict[str, Any], target: Float[np.ndarray, "h w"] | None):
+    """Model, template, space and target in the current default dtype.
+
+    Without a `target` the photo is made from the truth (fixed key) and returned.
+    """
+    from invglare.fit import Forward, Observation, Parameter, ParameterSpace
+    from invglare.io.model_config import build_model
+
+    model = build_model(config)
+    if target is None:
+        truth_model = _with(model, TRUTH)
+        obs = Observation(flux=TRUTH["obs.flux"], background=TRUTH["obs.background"], **NOISE)
+        psf = eqx.filter_jit(lambda m: m())(truth_model)
+        target = np.asarray(obs.sample(jax.random.key(1), psf), dtype=np.float64)
+    obs = Observation.from_target(target, **NOISE)
+    template = Forward(_with(model, START), obs)
+    n_max = int(model.aperture.upper_lashes.n_max)
+    space = ParameterSpace(
+        [
+            Parameter(DIAMETER, 2.0, 4.0, init=START[DIAMETER]),
+            Parameter(LASHES, 0.0, float(n_max), init=START[LASHES]),
+        ],
+        nuisance=[
+            Parameter("obs.flux", 0.0, math.inf, init=float(obs.flux)),
+            Parameter("obs.background", -100.0, 1000.0, init=float(obs.background)),
+        ],
+    )
+    return space, template, target
+
+
+class _LossLog:
+    """Host-side log of (seconds since start, loss) for every residual evaluation."""
+
+    def __init__(self):
+        self.t0 = time.perf_counter()
+        self.entries: list[tuple[float, float]] = []
+
+    def add(self, loss: float) -> None:
+        self.entries.append((time.perf_counter() - self.t0, loss))
+
+    def time_to(self, target: float) -> float | None:
+        for t, loss in self.entries:
+            if loss <= target:
+                return t
+        return None
+
+
+def _scipy_run(
+    residual: Callable[[Float[Array, " p"]], Float[Array, " n"]],
+    z0: Float[np.ndarray, " p"],
+    dtype,
+    diff_step: float | None,
+    max_nfev: int | None,
+) -> tuple[dict[str, Any], _LossLog]:
+    """`least_squares` ('trf', '2-point') on a compiled residual evaluated in `dtype`."""
+    from scipy.optimize import least_squares
+
+    log = _LossLog()
+
+    def fun(z: Float[np.ndarray, " p"]) -> Float[np.ndarray, " n"]:
+        r = np.asarray(residual(jnp.asarray(z, dtype=dtype)), dtype=np.float64)
+        log.add(float(r @ r))
+        return r
+
+    log.t0 = time.perf_counter()
+    sol = least_squares(
+        fun, z0, method="trf", jac="2-point", diff_step=diff_step, max_nfev=max_nfev
+    )
+    wall = time.perf_counter() - log.t0
+    loss0 = log.entries[0][1]
+    final = float(2.0 * sol.cost)
+    return {
+        "wall_s": wall,
+        "n_evaluations": len(log.entries),
+        "nfev": int(sol.nfev),
+        "njev": int(sol.njev) if sol.njev is not None else None,
+        "start_loss": loss0,
+        "final_loss": final,
+        "latent_moved": float(np.max(np.abs(sol.x - z0))),
+        "status": int(sol.status),
+        "message": str(sol.message),
+        "diff_step": diff_step,
+        "x": sol.x,
+    }, log
+
+
+def _residual_jit(fn) -> Callable[[Float[Array, " p"]], Float[Array, " n"]]:
+    """The residuals as one compiled function of the latent vector (`fn`'s data as inputs)."""
+    compiled = eqx.filter_jit(lambda f, z: f(z, None))
+    return lambda z: compiled(fn, z)
+
+
+def fit_daylight_eye(
+    npix: int = 128,
+    *,
+    max_steps: int = 256,
+    scipy_max_nfev: int | None = None,
+    config_path: Path = DEFAULT_CONFIG,
+    float32: bool = True,
+) -> dict[str, Any]:
+    """Run the daylight-eye fit with invglare and with scipy; return one record.
+
+    **Arguments:**
+
+    - `npix`: photo size (and aperture raster size), pixels.
+    - `max_steps`: invglare's step budget; `scipy_max_nfev`: scipy's (None: its default,
+      100 x the number of parameters). Small values are for testing the plumbing.
+    - `config_path`: the eye model (``examples/eye_daylight.toml``).
+    - `float32`: also run the float32 finite-difference fits.
+
+    **Returns:** a JSON-ready dict: the problem, ``invglare`` (compile / solve seconds,
+    final loss, steps, time to the target loss), ``scipy_float64`` and, with `float32`,
+    ``scipy_float32_default_step`` and ``scipy_float32_eps32_step`` (wall seconds,
+    evaluations, final loss, time to the target), the per-evaluation costs, and the
+    speed ratios.
+    """
+    from invglare.fit import FitProgress, fit, make_residual_fn
+    from invglare.fit.solve import _jacobian_and_residuals
+
+    if int(npix) != npix or npix < 16:
+        raise ConfigError(f"fit benchmark npix must be an integer >= 16, got {npix!r}")
+    config = _config(config_path, int(npix))
+    record: dict[str, Any] = {
+        "case": "fit_daylight_eye",
+        "kind": "fit",
+        "npix": int(npix),
+        "date": dt.datetime.now(dt.UTC).strftime("%Y-%m-%d %H:%M UTC"),
+        "load_1m_start": load_1m(),
+        "problem": {
+            "truth": dict(TRUTH),
+            "start": dict(START),
+            "noise": dict(NOISE),
+            "views": {"pixels": 1.0},
+            "loss_rtol": LOSS_RTOL,
+        },
+    }
+
+    with jax.enable_x64(True):
+        t0 = time.perf_counter()
+        space, template, target = _problem(config, None)
+        record["setup_s"] = time.perf_counter() - t0
+        prop = template.model.propagator
+        record["problem"]["model"] = (
+            f"{Path(config_path).name}: Kakimoto fixed mask, 550 nm, {npix}x{npix} photo at "
+            f"{float(prop.output.pixel_scale_deg):.4g} deg/px, {prop.grid.npix}x"
+            f"{prop.grid.npix} aperture raster over {float(prop.grid.width_mm):.3g} mm, "
+            f"{prop.method.upper()} propagation"
+        )
+        starts = space.as_dict(space.from_latent(space.initial_latent()))
+
+        # --- invglare LM, float64 -------------------------------------------------------
+        stamps: list[tuple[float, float]] = []
+
+        def progress(p: FitProgress) -> None:
+            stamps.append((time.perf_counter(), p.loss))
+
+        res = fit(
+            space,
+            template,
+            target,
+            {"pixels": 1.0},
+            starts=starts,
+            max_steps=max_steps,
+            truth=TRUTH,
+            progress=progress,
+        )
+        fn = make_residual_fn(space, template, target, {"pixels": 1.0})
+        z_best = space.to_latent(jnp.asarray([res.values[p] for p in space.paths]))
+        # The covariance step of `fit` compiled this; timing it now costs no compilation.
+        jac = measure(lambda: _jacobian_and_residuals(fn, z_best), 5, budget_s=5.0)
+        lm = {
+            "compile_s": res.timing_s["compile"],
+            "solve_s": res.timing_s["solve"],
+            "total_s": res.timing_s["total"],
+            "final_loss": res.loss,
+            "n_steps": res.n_steps,
+            "n_accepted": max(len(stamps) - 1, 0),
+            "converged": res.converged,
+            "message": res.message,
+            "values": res.values,
+            "jacobian_ms": jac.median_ms,
+        }
+
+        # --- scipy least_squares, float64, same compiled residual ------------------------
+        residual64 = _residual_jit(fn)
+        z0 = np.asarray(space.initial_latent(), dtype=np.float64)
+        t0 = time.perf_counter()
+        jax.block_until_ready(residual64(jnp.asarray(z0)))
+        compile64 = time.perf_counter() - t0
+        eval64 = measure(lambda: residual64(jnp.asarray(z0)), 10, budget_s=5.0)
+        sp64, log64 = _scipy_run(residual64, z0, jnp.float64, None, scipy_max_nfev)
+        sp64["compile_s"] = compile64
+        sp64["residual_ms"] = eval64.median_ms
+        sp64["values"] = space.as_dict(space.from_latent(jnp.asarray(sp64.pop("x"))))
+
+    target_loss = min(lm["final_loss"], sp64["final_loss"]) * (1.0 + LOSS_RTOL)
+    lm["time_to_target_s"] = _lm_time_to(stamps, target_loss, lm)
+    sp64["time_to_target_s"] = log64.time_to(target_loss)
+    record["target_loss"] = target_loss
+    record["invglare"] = lm
+    record["scipy_float64"] = sp64
+
+    if float32:
+        # --- the same in float32: the rendering precision, where FD steps break down ---
+        # The eye's random elements are drawn in the model's dtype, and jax.random gives
+        # different numbers for float32 and float64 from one key: the float32 model is a
+        # different eye. So it fits its own photo (same truth, same noise key), and its
+        # reference loss is at invglare's float64 solution (close to its own optimum: the
+        # truth values are the same).
+        space32, template32, target32 = _problem(config, None)
+        fn32 = make_residual_fn(space32, template32, target32, {"pixels": 1.0})
+        residual32 = _residual_jit(fn32)
+        z0_32 = np.asarray(space32.initial_latent(), dtype=np.float64)
+        t0 = time.perf_counter()
+        jax.block_until_ready(residual32(jnp.asarray(z0_32, jnp.float32)))
+        compile32 = time.perf_counter() - t0
+        eval32 = measure(lambda: residual32(jnp.asarray(z0_32, jnp.float32)), 10, budget_s=5.0)
+        best = np.asarray([lm["values"][p] for p in space32.paths])
+        r_ref = np.asarray(residual32(space32.to_latent(jnp.asarray(best, jnp.float32))), float)
+        reference32 = float(r_ref @ r_ref)
+        target32 = reference32 * (1.0 + LOSS_RTOL_32)
+        record["float32_reference_loss"] = reference32
+        record["float32_target_loss"] = target32
+        eps32 = float(np.sqrt(np.finfo(np.float32).eps))
+        for key, step in (
+            ("scipy_float32_default_step", None),
+            ("scipy_float32_eps32_step", eps32),
+        ):
+            run, log = _scipy_run(residual32, z0_32, jnp.float32, step, scipy_max_nfev)
+            run["compile_s"] = compile32
+            run["residual_ms"] = eval32.median_ms
+            run["values"] = space32.as_dict(space32.from_latent(jnp.asarray(run.pop("x"))))
+            run["time_to_target_s"] = log.time_to(target32)
+            run["reached_target"] = run["time_to_target_s"] is not None
+            record[key] = run
+
+    record["ratios"] = _ratios(lm, sp64)
+    record["load_1m_end"] = load_1m()
+    return record
+
+
+def _lm_time_to(stamps: list[tuple[float, float]], target: float, lm: dict) -> float | None:
+    """Seconds from the start of the solve to the first accepted step at or below `target`.
+
+    The stamps are host times of the progress reports; the first report (the start's
+    loss) comes one step into the solve, so one average step is added.
+    """
+    if not stamps:
+        return None
+    step = lm["solve_s"] / max(lm["n_steps"], 1)
+    t_first = stamps[0][0]
+    for t, loss in stamps:
+        if loss <= target:
+            return t - t_first + step
+    # The final loss is evaluated after the last accepted step.
+    return lm["solve_s"] if lm["final_loss"] <= target else None
+
+
+def _ratios(lm: dict, sp: dict) -> dict[str, float | None]:
+    """scipy over invglare: > 1 means invglare is faster."""
+
+    def ratio(a, b):
+        return a / b if a is not None and b else None
+
+    return {
+        "time_to_target": ratio(sp["time_to_target_s"], lm["time_to_target_s"]),
+        "full_solve": ratio(sp["wall_s"], lm["solve_s"]),
+        "with_compile": ratio(sp["wall_s"] + sp["compile_s"], lm["solve_s"] + lm["compile_s"]),
+        "per_iteration_cost": ratio(sp["residual_ms"] * (1 + len(TRUTH)), lm["jacobian_ms"]),
+    }
+
+
+def fit_markdown(record: dict[str, Any]) -> list[str]:
+    """The fit benchmark's section of bench.md."""
+    lm, sp = record["invglare"], record["scipy_float64"]
+
+    def s(x, fmt=".2f"):
+        return "—" if x is None else format(x, fmt)
+
+    lines = [
+        f"## Fit: {record['case']} ({record['npix']}² photo)",
+        "",
+        f"Measured {record['date']}. {record['problem']['model']}. Free: pupil diameter, "
+        f"upper-lash count (start {START[LASHES]} for a truth of {TRUTH[LASHES]:g}), flux, "
+        f"background; truth {_fmt_values(TRUTH)}; pixel view (noise-normalised "
+        f"residuals). Load (1 min) {record['load_1m_start']} at the start, "
+        f"{record['load_1m_end']} at the end.",
+        "",
+        "| solver | dtype | compile s | solve / wall s | time to target s | evaluations "
+        "| final loss | stopped because |",
+        "|---|---|---:|---:|---:|---:|---:|---|",
+        f"| invglare LM (fit) | float64 | {s(lm['compile_s'], '.1f')} | {s(lm['solve_s'])} "
+        f"| {s(lm['time_to_target_s'])} | {lm['n_steps']} steps ({lm['n_accepted']} accepted) "
+        f"| {lm['final_loss']:.6g} | {_short(lm['message'])} |",
+    ]
+    runs = [("scipy trf, 2-point FD", "float64", sp)]
+    for key, label in (
+        ("scipy_float32_default_step", "scipy trf, 2-point FD, default step"),
+        ("scipy_float32_eps32_step", "scipy trf, 2-point FD, step sqrt(eps32)"),
+    ):
+        if key in record:
+            runs.append((label, "float32", record[key]))
+    for label, dtype, run in runs:
+        lines.append(
+            f"| {label} | {dtype} | {s(run['compile_s'], '.1f')} | {s(run['wall_s'])} "
+            f"| {s(run['time_to_target_s'])} | {run['n_evaluations']} "
+            f"(nfev {run['nfev']}, njev {run['njev']}) | {run['final_loss']:.6g} "
+            f"| {_short(run['message'])} |"
+        )
+    r = record["ratios"]
+    lines += [
+        "",
+        f"Target loss {record['target_loss']:.6g} (the lower float64 final loss + "
+        f"{LOSS_RTOL:g} relative). Speed, scipy time over invglare time (> 1: invglare "
+        f"faster): to the target **{s(r['time_to_target'])}**, full solves "
+        f"{s(r['full_solve'])}, including compilation {s(r['with_compile'])}. Per "
+        f"iteration: a forward-mode Jacobian with residuals takes {lm['jacobian_ms']:.1f} ms, "
+        f"a residual {sp['residual_ms']:.1f} ms, so one 2-point Jacobian (5 residuals) over "
+        f"one autodiff Jacobian is {s(r['per_iteration_cost'])}. Iterations: invglare "
+        f"{lm['n_steps']} steps of which {lm['n_accepted']} accepted, each computing a "
+        f"Jacobian; scipy {sp['njev']} Jacobians and {sp['nfev']} other residuals. "
+        f"`fit()` took {lm['total_s']:.1f} s end to end (besides compile and solve: setting "
+        "up the residuals and compiling the covariance's Jacobian and the prediction).",
+        "",
+        f"Start loss {sp['start_loss']:.6g}. Fitted values: invglare "
+        + _fmt_values(lm["values"])
+        + "; scipy float64 "
+        f"{_fmt_values(sp['values'])}.",
+    ]
+    if "scipy_float32_default_step" in record:
+        d = record["scipy_float32_default_step"]
+        e = record["scipy_float32_eps32_step"]
+        lines += [
+            "",
+            "float32 finite differences (their own photo: the float32 eye draws its random "
+            "lashes and particles in float32, which jax.random makes a different eye from "
+            f"the same key; reference loss {record['float32_reference_loss']:.6g} at "
+            "invglare's float64 solution, target "
+            f"{record['float32_target_loss']:.6g}): with scipy's default step (sized for "
+            f"float64, ~1.5e-8 relative) the loss went from {d['start_loss']:.6g} to "
+            f"{d['final_loss']:.6g} (latent moved by {d['latent_moved']:.3g}, "
+            f"{'reached' if d['reached_target'] else 'did not reach'} the target); with "
+            f"the float32 step sqrt(eps32) = 3.5e-4 it ended at {e['final_loss']:.6g} after "
+            f"{e['n_evaluations']} residuals "
+            f"({'reached' if e['reached_target'] else 'did not reach'} the target).",
+        ]
+    return lines
+
+
+def _fmt_values(values: dict[str, float]) -> str:
+    short = {DIAMETER: "D", LASHES: "lashes", "obs.flux": "flux", "obs.background": "bg"}
+    return ", ".join(f"{short.get(k, k)} {v:.5g}" for k, v in values.items())
+
+
+def _short(message: str) -> str:
+    return message.split(";")[0].split(" (")[0].replace("|", "/")
+
+
+def as_json(record: dict[str, Any]) -> dict[str, Any]:
+    """The record with NumPy scalars made plain (for bench.json)."""
+    return jax.tree_util.tree_map(lambda x: x.item() if isinstance(x, np.generic) else x, record)
+
+
+__all__ = ["FIT_CASES", "as_json", "fit_daylight_eye", "fit_markdown"]

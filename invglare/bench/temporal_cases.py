@@ -1,0 +1,114 @@
+"""Benchmark cases of the temporal glare model: is a frame real time on a CPU?
+
+Ritschel et al. (2009, Table 2) report, on a GeForce 8800 GTX (2008), PSFs with 2x2
+aperture super-sampling and 32 spectral samples, *without* convolution:
+
+| size | aperture | diffraction | display | overall |
+|-----:|---------:|------------:|--------:|--------:|
+| 256  | 5.2 ms   | 2.7 ms      | 1.1 ms  | 9.0 ms  |
+| 512  | 11.8 ms  | 4.8 ms      | 1.8 ms  | 18.4 ms |
+| 1024 | 36.5 ms  | 13.8 ms     | 4.8 ms  | 55.1 ms |
+
+The cases time one frame of an animation in steady state, as
+:func:`~invglare.render.temporal_frames.render_sequence` runs it: the paper's
+night eye (750 lens-nucleus and 250 vitreous particles, 200 gratings, lids and 80
+lashes), default dynamics, an N/2 aperture raster padded to an N x N FFT. What is
+computed once per sequence (the Fresnel term, the particles and gratings that do not
+move, the lids and lashes while no blink is under way, and the spectrum of a still
+frame) is computed before timing; everything a frame needs is timed:
+
+- ``temporal_psf``: dynamics step and values, the moving particles and the pupil
+  rasterised, times ``E``, one N x N FFT, 32 scaled copies into linear RGB (the paper's
+  "overall");
+- ``temporal_frame``: that, plus the FFT convolution of an N x N RGB frame (zero-padded
+  to avoid wrap-around: transforms of about 2N x 2N) and the gamma 2.2 tone map;
+- ``temporal_frame_wrap``: the same with a circular convolution on the frame's N x N
+  grid, as a texture-based GPU pipeline does (light leaving one edge re-enters at the
+  other).
+
+Sizes above 1024 are skipped (the paper stops there).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from invglare.bench.cases import Case
+
+#: Ritschel et al. (2009) Table 2, overall ms per PSF (no convolution), by size.
+PAPER_TABLE2_MS = {256: 9.0, 512: 18.4, 1024: 55.1}
+_PAPER = "paper (GeForce 8800 GTX, no convolution): 9.0 / 18.4 / 55.1 ms at 256 / 512 / 1024"
+_MAX_N = 1024
+
+
+def _model(n: int):
+    from invglare.aperture.eye import night_eye
+    from invglare.models.temporal import TemporalGlare
+
+    return TemporalGlare.build(night_eye(0), npix=n)
+
+
+def _psf_case(n: int):
+    if n > _MAX_N:
+        return None
+    import equinox as eqx
+
+    model = _model(n)
+    constants = eqx.filter_jit(lambda m: m.sequence_constants())(model)
+    state = model.init_state(1.0)
+
+    @eqx.filter_jit
+    def frame(m, c, s):
+        return m.advance(s, 1.0), m.psf_cf(c, s)
+
+    return lambda: frame(model, constants, state)
+
+
+def _frame_case(wrap: bool):
+    def make(n: int):
+        if n > _MAX_N:
+            return None
+        import equinox as eqx
+        import jax.numpy as jnp
+
+        from invglare.render.temporal_frames import display, frame_convolver
+
+        model = _model(n)
+        rng = np.random.default_rng(3)
+        image = jnp.asarray(rng.random((n, n, 3)) * 10.0, jnp.float32)
+        constants = eqx.filter_jit(lambda m: m.sequence_constants())(model)
+        spectrum = eqx.filter_jit(lambda m, i: frame_convolver(m, i, None, wrap)[0])(model, image)
+        state = model.init_state(1.0)
+
+        @eqx.filter_jit
+        def frame(m, c, s, spec, img):
+            _, glare = frame_convolver(m, img, None, wrap)
+            return m.advance(s, 1.0), display(m, glare(spec, m.psf_cf(c, s)))
+
+        return lambda: frame(model, constants, state, spectrum, image)
+
+    return make
+
+
+TEMPORAL_CASES: tuple[Case, ...] = (
+    Case(
+        "temporal_psf",
+        "pipeline",
+        "temporal glare PSF per frame: dynamics + moving aperture (N/2) + Fresnel FFT (N) + "
+        f"32 scaled copies to RGB; {_PAPER}",
+        _psf_case,
+    ),
+    Case(
+        "temporal_frame",
+        "pipeline",
+        "temporal glare full frame: temporal_psf + padded FFT convolution of an N x N RGB "
+        "still frame + gamma 2.2; goal <= 33 ms at N = 512 on 2 cores",
+        _frame_case(wrap=False),
+    ),
+    Case(
+        "temporal_frame_wrap",
+        "pipeline",
+        "temporal_frame with circular (unpadded, GPU-texture-like) convolution",
+        _frame_case(wrap=True),
+    ),
+)

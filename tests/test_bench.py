@@ -1,0 +1,236 @@
+"""The benchmark command's plumbing: every case runs, ratios come from the records, reports.
+
+No timing is asserted anywhere: speed is what `invglare bench` reports, not a test outcome.
+The eye and Kakimoto cases and the fit benchmark compile large XLA programs (minutes on a
+busy 2-core machine), so they are marked slow.
+"""
+
+import json
+import math
+import time
+
+import jax
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from invglare.bench import runner
+from invglare.bench.cases import CASES
+from invglare.bench.fit import FIT_CASES, fit_daylight_eye, fit_markdown
+from invglare.bench.runner import _add_ratios, _keep_previous, render_markdown, run_bench, select
+from invglare.bench.timing import measure
+from invglare.cli import app
+from invglare.errors import ConfigError
+
+TINY = 32
+#: Cases whose compilation takes minutes on a loaded 2-core machine.
+HEAVY = ("eye_", "kakimoto_")
+
+
+def _float_leaves(tree) -> list[np.ndarray]:
+    return [
+        np.asarray(x)
+        for x in jax.tree_util.tree_leaves(tree)
+        if hasattr(x, "dtype") and np.issubdtype(np.asarray(x).dtype, np.inexact)
+    ]
+
+
+@pytest.mark.parametrize(
+    "case",
+    [
+        pytest.param(c, id=c.name, marks=[pytest.mark.slow] if c.name.startswith(HEAVY) else [])
+        for c in CASES
+    ],
+)
+def test_every_case_builds_and_runs_at_a_tiny_size_with_finite_output(case):
+    fn = case.make(TINY)
+    if fn is None:
+        pytest.skip(f"{case.name}: its library is not installed here")
+    leaves = _float_leaves(fn())
+    assert leaves, f"{case.name} returned no float arrays"
+    for leaf in leaves:
+        assert np.all(np.isfinite(leaf)), case.name
+    if case.forward is not None:
+        # A gradient case: the scalar it differentiates depends on its inputs.
+        assert any(np.any(leaf != 0) for leaf in leaves), case.name
+    else:
+        # A forward case: a non-trivial image (an FFT, raster or PSF).
+        assert max(leaf.size for leaf in leaves) >= (TINY // 2) ** 2
+        assert any(np.any(leaf != 0) for leaf in leaves), case.name
+
+
+def test_case_names_are_unique_and_gradients_name_an_existing_forward():
+    names = [c.name for c in CASES]
+    assert len(names) == len(set(names))
+    assert not set(names) & set(FIT_CASES)
+    for c in CASES:
+        assert c.kind in ("floor", "pipeline")
+        if c.forward is not None:
+            assert c.forward in names
+
+
+# --------------------------------------------------------------------------------------
+# ratios, selection, reports
+
+
+def _rec(case, size, ms, kind="pipeline", forward=None):
+    return {"case": case, "kind": kind, "size": size, "median_ms": ms, "forward": forward}
+
+
+def test_add_ratios_from_synthetic_records():
+    records = [
+        _rec("fft_floor_scipy", 64, 2.0, "floor"),
+        _rec("fft_floor_pyfftw", 64, 1.0, "floor"),
+        _rec("fft_jax", 64, 4.0),
+        _rec("psf_mono", 64, 10.0),
+        _rec("psf_mono_grad", 64, 25.0, forward="psf_mono"),
+        _rec("fft_floor_scipy", 128, 8.0, "floor"),
+        _rec("psf_mono_grad", 128, 30.0, forward="psf_mono"),  # its forward is missing
+        _rec("psf_mono", 256, 5.0),  # no floor measured at this size
+    ]
+    _add_ratios(records)
+    by = {(r["case"], r["size"]): r for r in records}
+    # The fastest floor of the size is the reference.
+    assert by["psf_mono", 64]["floor_ms"] == 1.0
+    assert by["psf_mono", 64]["ratio"] == pytest.approx(10.0)
+    assert by["fft_floor_scipy", 64]["ratio"] == pytest.approx(2.0)
+    assert by["fft_floor_pyfftw", 64]["ratio"] == pytest.approx(1.0)
+    assert by["psf_mono", 64]["vs_jax_fft"] == pytest.approx(2.5)
+    assert by["psf_mono_grad", 64]["vs_forward"] == pytest.approx(2.5)
+    assert by["psf_mono_grad", 64]["ratio"] == pytest.approx(25.0)
+    assert by["psf_mono_grad", 128]["ratio"] == pytest.approx(30.0 / 8.0)
+    assert by["psf_mono_grad", 128]["vs_forward"] is None
+    assert by["psf_mono_grad", 128]["vs_jax_fft"] is None
+    assert by["psf_mono", 256]["ratio"] is None and by["psf_mono", 256]["floor_ms"] is None
+    assert by["fft_floor_scipy", 64]["vs_forward"] is None
+
+
+def test_select_patterns_skip_and_fit():
+    cases, fits = select([])
+    assert [c.name for c in cases] == [c.name for c in CASES]
+    assert fits == list(FIT_CASES)
+    # A pattern brings the floors and JAX's FFT along, and leaves the fit out.
+    cases, fits = select(["psf_mono"])
+    names = {c.name for c in cases}
+    assert {"psf_mono", "psf_mono_grad", "fft_floor_scipy", "fft_jax"} <= names
+    assert "eye_raster" not in names and fits == []
+    # Only the fit: no per-size cases at all.
+    cases, fits = select(["fit"])
+    assert cases == [] and fits == ["fit_daylight_eye"]
+    # Everything but the fit.
+    cases, fits = select([], ["fit"])
+    assert fits == [] and {c.name for c in cases} == {c.name for c in CASES}
+    # Skipping never drops the floors the ratios need.
+    cases, _ = select(["eye"], ["fft"])
+    assert {"fft_floor_scipy", "fft_jax", "eye_raster"} <= {c.name for c in cases}
+    with pytest.raises(ConfigError, match=r"no benchmark case matches.*fit_daylight_eye"):
+        select(["no_such_case"])
+    with pytest.raises(ConfigError, match="skipped"):
+        select(["psf_mono"], ["psf"])
+
+
+def test_run_bench_writes_json_and_markdown_with_ratios_from_the_records(tmp_path):
+    records = run_bench(["psf_mono"], tmp_path, [TINY], repeats=3, skip=["grad"])
+    data = json.loads((tmp_path / "bench.json").read_text())
+    assert set(data) == {"meta", "records", "fit"}
+    assert data["fit"] == [] and data["records"] == records
+    assert not (tmp_path / "bench.partial.json").exists()
+    names = {r["case"] for r in data["records"]}
+    assert {"fft_floor_scipy", "fft_jax", "psf_mono"} <= names
+    assert names <= {"fft_floor_scipy", "fft_floor_pyfftw", "fft_jax", "psf_mono"}
+    floor = min(r["median_ms"] for r in data["records"] if r["kind"] == "floor")
+    jfft = next(r for r in data["records"] if r["case"] == "fft_jax")
+    for r in data["records"]:
+        assert r["median_ms"] > 0 and r["repeats"] >= 3 and r["first_call_s"] >= 0
+        assert r["floor_ms"] == floor
+        assert r["ratio"] == pytest.approx(r["median_ms"] / floor, rel=1e-3)
+        assert r["vs_jax_fft"] == pytest.approx(r["median_ms"] / jfft["median_ms"], rel=1e-3)
+    meta = data["meta"]
+    assert meta["wall_s"] > 0 and "jax" in meta and any("14664" in n for n in meta["notes"])
+    md = (tmp_path / "bench.md").read_text()
+    assert "## Ratio to the FFT floor" in md and "## All timings" in md
+    assert f"| psf_mono | {TINY} |" in md and "14664" in md and "## Fit" not in md
+
+
+def test_a_fit_only_run_keeps_the_timings_and_the_other_way_round(tmp_path):
+    path = tmp_path / "bench.json"
+    old_meta = {"date": "then", "load_1m_start": 1.0, "load_1m_end": 1.5, "wall_s": 10.0}
+    timings = [_rec("psf_mono", 64, 1.0)]
+    old_fit = {"case": "fit_daylight_eye", "kind": "fit", "npix": 64}
+    path.write_text(json.dumps({"meta": old_meta, "records": timings, "fit": [old_fit]}))
+    # Only a fit ran: the timings and their date are kept.
+    new_fit = {"case": "fit_daylight_eye", "kind": "fit", "npix": 128}
+    recs, fits, meta = _keep_previous(path, [], [new_fit], {"date": "now"})
+    assert recs == timings and fits == [new_fit] and meta["timings_from"]["date"] == "then"
+    # Only timings ran: the earlier fit is kept, the timings are the new ones.
+    new_timings = [_rec("psf_mono", 64, 2.0)]
+    recs, fits, meta = _keep_previous(path, new_timings, [], {"date": "now"})
+    assert recs == new_timings and fits == [old_fit] and "timings_from" not in meta
+    # An older list-shaped bench.json has nothing to keep.
+    path.write_text(json.dumps(timings))
+    assert _keep_previous(path, [], [], {}) == ([], [], {})
+    _add_ratios(recs)
+    md = render_markdown(recs, {"date": "now", "machine": "m", "jax": "j", **meta})
+    assert "| psf_mono | 64 |" in md
+
+
+def test_measure_stops_at_the_budget_after_the_minimum_repeats():
+    timing = measure(lambda: time.sleep(0.02), repeats=1000, budget_s=0.05)
+    assert 3 <= timing.repeats < 1000
+    assert timing.median_ms > 0 and timing.min_ms <= timing.median_ms
+    assert timing.first_call_s > 0 and math.isfinite(timing.cpu_per_wall)
+
+
+def test_cli_bench_rejects_bad_sizes_and_unknown_cases(tmp_path):
+    cli = CliRunner()
+    result = cli.invoke(app, ["bench", "psf_mono", "--sizes", "32,abc", "--out-dir", tmp_path])
+    assert result.exit_code == 2 and "comma-separated integers" in result.output
+    result = cli.invoke(app, ["bench", "psf_mono", "--sizes", "33", "--out-dir", tmp_path])
+    assert result.exit_code == 2 and "even and >= 16" in result.output
+    result = cli.invoke(app, ["bench", "nope", "--skip", "fit", "--out-dir", tmp_path])
+    assert result.exit_code == 2 and "no benchmark case matches" in result.output
+    assert not (tmp_path / "bench.json").exists()
+
+
+def test_a_failing_case_is_reported_after_the_others_are_written(tmp_path, monkeypatch):
+    def broken(n):
+        raise ValueError(f"broken at {n}")
+
+    bad = runner.Case("psf_broken", "pipeline", "always fails", broken)
+    monkeypatch.setattr(runner, "CASES", (*CASES[:3], bad))
+    with pytest.raises(RuntimeError, match=r"psf_broken \(N=32\).*broken at 32"):
+        run_bench(["psf_broken"], tmp_path, [TINY], repeats=3)
+    data = json.loads((tmp_path / "bench.json").read_text())
+    assert {r["case"] for r in data["records"]} >= {"fft_floor_scipy", "fft_jax"}
+
+
+# --------------------------------------------------------------------------------------
+# the fit benchmark
+
+
+@pytest.mark.slow
+def test_fit_benchmark_plumbing_at_a_tiny_size():
+    record = fit_daylight_eye(TINY, max_steps=3, scipy_max_nfev=3)
+    json.dumps(record)  # JSON-ready as it is
+    lm = record["invglare"]
+    assert lm["compile_s"] > 0 and lm["solve_s"] > 0 and 1 <= lm["n_steps"] <= 3
+    assert math.isfinite(lm["final_loss"]) and lm["jacobian_ms"] > 0
+    for key in ("scipy_float64", "scipy_float32_default_step", "scipy_float32_eps32_step"):
+        run = record[key]
+        assert run["n_evaluations"] >= 1 and math.isfinite(run["final_loss"])
+        assert run["final_loss"] <= run["start_loss"] and run["residual_ms"] > 0
+        assert set(run["values"]) == set(record["problem"]["truth"])
+    assert record["float32_target_loss"] > record["float32_reference_loss"] > 0
+    # The target is the better float64 loss, so at least one solver reached it.
+    assert record["target_loss"] >= min(lm["final_loss"], record["scipy_float64"]["final_loss"])
+    assert lm["time_to_target_s"] is not None or (
+        record["scipy_float64"]["time_to_target_s"] is not None
+    )
+    assert set(record["ratios"]) == {
+        "time_to_target",
+        "full_solve",
+        "with_compile",
+        "per_iteration_cost",
+    }
+    md = "\n".join(fit_markdown(record))
+    assert "## Fit: fit_daylight_eye" in md and "scipy trf" in md and "float32" in md
