@@ -126,7 +126,9 @@ class Propagator(eqx.Module):
                 )
         if method == "mft":
             half_field = math.radians(float(output.half_field_deg))
-            if half_field / (shortest_wavelength_nm * 1e-6) > 0.5 / pitch:
+            # A relative margin: a field exactly at the band edge (the FFT's own) is fine
+            # and must not be refused for a float32 rounding error.
+            if half_field / (shortest_wavelength_nm * 1e-6) > 0.5 / pitch * (1 + 1e-6):
                 supported = math.degrees(0.5 / pitch * shortest_wavelength_nm * 1e-6)
                 raise PhysicsRangeError(
                     f"the output field reaches {float(output.half_field_deg):.4g} deg but the "
