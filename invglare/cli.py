@@ -168,6 +168,54 @@ def scene(
 
 @app.command()
 @_reports_user_errors
+def gallery(
+    models: Annotated[
+        list[Path] | None,
+        typer.Argument(
+            help="Eye / camera configs (TOML); default: daylight and night eyes, the daylight "
+            "eye without lashes, a 6-blade camera with and without a cross-screen filter."
+        ),
+    ] = None,
+    out_dir: Annotated[Path, typer.Option(help="Where gallery.md and gallery/*.png go.")] = Path(
+        "reports"
+    ),
+    scene: Annotated[
+        str, typer.Option(help="Bundled scene rendered with each PSF.")
+    ] = "street_lights_at_night",
+    npix: Annotated[int, typer.Option(help="PSF and scene size in pixels.")] = 256,
+    wavelengths_nm: Annotated[
+        str,
+        typer.Option(
+            "--wavelengths-nm",
+            help="Spectrum of every model (RGB PSFs); 'config' keeps each config's own.",
+        ),
+    ] = "400:700:8",
+    scene_scale: Annotated[
+        str,
+        typer.Option(
+            help="Scene pixels as a multiple of each PSF's pixel scale (the glare stays "
+            "visible), or 'scene' for the scene's own deg/px (0.05: the PSF covers a few pixels)."
+        ),
+    ] = "2",
+) -> None:
+    """Show aperture, log PSF and a rendered scene for a few eyes and cameras.
+
+    Writes OUT_DIR/gallery.md and one PNG row per model in OUT_DIR/gallery/.
+    """
+    from invglare.commands.gallery import run_gallery
+
+    run_gallery(
+        models,
+        out_dir,
+        scene=scene,
+        npix=npix,
+        wavelengths_nm=None if wavelengths_nm == "config" else wavelengths_nm,
+        scene_scale=scene_scale,
+    )
+
+
+@app.command()
+@_reports_user_errors
 def bench(
     cases: Annotated[
         list[str] | None,

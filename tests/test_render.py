@@ -508,3 +508,18 @@ def test_write_scene_exr_round_trip(tmp_path):
     assert exr.channels == ("R", "G", "B")
     assert exr.pixel_scale_deg == scale
     assert exr.attrs["invglareScene"] == "candle"
+
+
+def test_reinhard_treats_negative_out_of_gamut_luminance_as_black():
+    """A spectral PSF's out-of-gamut pixels can have luminance < 0: no NaN, no white-out."""
+    from invglare.render.tonemap import reinhard_global
+
+    image = np.full((8, 8, 3), 1.0, np.float32)
+    image[2, 3] = [-500.0, 10.0, -300.0]  # luminance -150
+    out = np.asarray(reinhard_global(image))
+    assert np.all(np.isfinite(out))
+    # Elsewhere the display values are those of the image with that pixel black.
+    mask = np.ones((8, 8), bool)
+    mask[2, 3] = False
+    np.testing.assert_allclose(out[mask], np.asarray(reinhard_global(np.where(
+        mask[..., None], image, 0.0)))[mask], rtol=1e-6)  # fmt: skip

@@ -274,9 +274,10 @@ def log_average_luminance(
 ) -> Float[Array, ""]:
     """``exp(mean(log(delta + L)))``, the geometric mean luminance (Reinhard eq. 1).
 
-    `delta` (image units) keeps black pixels from sending the mean to −∞.
+    `delta` (image units) keeps black pixels from sending the mean to −∞. Negative
+    luminance (out-of-gamut colours of a spectral PSF can have it) counts as black.
     """
-    return jnp.exp(jnp.mean(jnp.log(delta + luminance(_float(image)))))
+    return jnp.exp(jnp.mean(jnp.log(delta + jnp.maximum(luminance(_float(image)), 0.0))))
 
 
 def reinhard_global(
@@ -318,7 +319,7 @@ def reinhard_global(
     if white is not None:
         check_positive("reinhard white", white, "(image units)")
     image = _float(image)
-    lum = luminance(image)
+    lum = jnp.maximum(luminance(image), 0.0)  # negative (out-of-gamut) luminance: black
     gain = key / log_average_luminance(image, delta)
     lm = gain * lum
     # L_d / L computed without dividing by L, so black pixels give 0, not NaN.
