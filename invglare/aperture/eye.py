@@ -58,6 +58,7 @@ from invglare.aperture.stamps import (
     window_half_px,
 )
 from invglare.dynamics.noise import normal, uniform
+from invglare.dynamics.pupil import check_range as _check_range
 from invglare.errors import ConfigError, PhysicsRangeError
 from invglare.optics.sampling import ApertureGrid
 
@@ -112,21 +113,6 @@ def _is_concrete(x) -> bool:
 
 def _show(arr: np.ndarray) -> str:
     return f"{arr.item():g}" if arr.size == 1 else np.array2string(arr, precision=4)
-
-
-def _check_range(name: str, value, lo: float, hi: float = math.inf, lo_open=False, unit=""):
-    """Raise `PhysicsRangeError` unless a concrete `value` is finite and within the bounds."""
-    if not _is_concrete(value):
-        return
-    arr = np.asarray(value, dtype=float)
-    bad = ~np.isfinite(arr) | ((arr <= lo) if lo_open else (arr < lo)) | (arr > hi)
-    if np.any(bad):
-        lo_txt = f"> {lo:g}" if lo_open else f">= {lo:g}"
-        hi_txt = f" and <= {hi:g}" if math.isfinite(hi) else ""
-        suffix = f" {unit}" if unit else ""
-        raise PhysicsRangeError(
-            f"{name} must be finite, {lo_txt}{hi_txt}, got {_show(arr)}{suffix}"
-        )
 
 
 def _check_finite(name: str, value, shape: tuple = ()) -> None:
