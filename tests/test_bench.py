@@ -15,9 +15,15 @@ import pytest
 from typer.testing import CliRunner
 
 from invglare.bench import runner
-from invglare.bench.cases import CASES
 from invglare.bench.fit import FIT_CASES, fit_daylight_eye, fit_markdown
-from invglare.bench.runner import _add_ratios, _keep_previous, render_markdown, run_bench, select
+from invglare.bench.runner import (
+    CASES,
+    _add_ratios,
+    _keep_previous,
+    render_markdown,
+    run_bench,
+    select,
+)
 from invglare.bench.timing import measure
 from invglare.cli import app
 from invglare.errors import ConfigError
@@ -35,11 +41,19 @@ def _float_leaves(tree) -> list[np.ndarray]:
     ]
 
 
+#: Gradient cases of the heavy models are left to their own suites (test_eye, test_kakimoto
+#: check those gradients against finite differences); here the gradient plumbing is
+#: exercised by the light cases (psf_mono_grad, convolve_rgb_grad), at a fraction of the
+#: compile time.
+HEAVY_GRADS = ("eye_raster_grad", "kakimoto_eye_psf_grad")
+
+
 @pytest.mark.parametrize(
     "case",
     [
         pytest.param(c, id=c.name, marks=[pytest.mark.slow] if c.name.startswith(HEAVY) else [])
         for c in CASES
+        if c.name not in HEAVY_GRADS
     ],
 )
 def test_every_case_builds_and_runs_at_a_tiny_size_with_finite_output(case):

@@ -361,7 +361,8 @@ def test_mft_field_exactly_at_the_band_edge_is_accepted(window_mm):
     pitch = window_mm / n
     edge = math.degrees(0.5 / pitch * lam * 1e-6)  # the half field the raster supports
     common = dict(window_mm=window_mm, focal_length_mm=50.0, fft_wavelength_nm=lam,
-                  shortest_wavelength_nm=lam, npix=2 * n, aperture_npix=n, method="mft")  # fmt: skip
+                  shortest_wavelength_nm=lam, npix=2 * n, aperture_npix=n,
+                  method="mft")  # fmt: skip
     for nudge in (1 - 1e-15, 1.0, 1 + 1e-15):
         Propagator.build(pixel_scale_deg=edge / n * nudge, **common)
     with pytest.raises(PhysicsRangeError, match="without aliasing"):
