@@ -85,17 +85,21 @@ def run_render(
         raise InputDataError(
             f"{scene} has no pixelScaleDeg header; pass --pixel-scale-deg (degrees per pixel)"
         )
-    if _model_kind(model_path) == "veiling":
-        from invglare.render.ghost_frames import render_ghosts
+    from invglare.models.veiling import VeilingGlare
 
+    def scene_grid(kind):
         # Lens ghosts are no convolution: each light gets the ghosts of its own direction,
         # on a model built on the scene's grid with its axis at the centre.
-        model = _load_model(model_path, npix=tuple(image.shape[:2]), pixel_scale_deg=scale)
+        return dict(npix=tuple(image.shape[:2]), pixel_scale_deg=scale) if kind == "veiling" else {}
+
+    model = _load_model(model_path, scene_grid)
+    if isinstance(model, VeilingGlare):
+        from invglare.render.ghost_frames import render_ghosts
+
         bright = _bright(jnp.asarray(image), threshold, max_bright)
         result = render_ghosts(model, image, bright, scale)
         _write(out, np.asarray(result), scale, model, "ghosts", scene, tonemap_name, exposure)
         return
-    model = _load_model(model_path)
     psf = psf_at_scale(model, scale, max_npix=2 * max(image.shape[:2]) + 1)
     if image.ndim == 3 and psf.ndim == 2:
         psf = jnp.repeat(psf[..., None], image.shape[2], axis=-1)
@@ -123,6 +127,7 @@ def _write(out: Path, result, scale: float, model, mode: str, scene: Path, tonem
     """A linear EXR (model config in the header) or a tone-mapped PNG."""
     from invglare.io.exr import write_exr
     from invglare.io.images import write_png
+    from invglare.io.model_config import model_to_config
     from invglare.render import tonemap
 
     if out.suffix.lower() == ".exr":
@@ -130,7 +135,7 @@ def _write(out: Path, result, scale: float, model, mode: str, scene: Path, tonem
             out,
             result,
             pixel_scale_deg=scale,
-            config=_config_of(model),
+            config=model_to_config(model),
             attrs={"renderMode": mode, "scene": str(scene)},
         )
     else:
@@ -139,20 +144,17 @@ def _write(out: Path, result, scale: float, model, mode: str, scene: Path, tonem
     log.info("wrote %s (%s)", out, mode)
 
 
-def _load_model(model_path: Path, **grid):
-    """The model of a config file (`grid`: ``npix`` / ``pixel_scale_deg`` overrides)."""
+def _load_model(model_path: Path, grid_of=None):
+    """The model of a config file; `grid_of(kind)` gives ``npix`` / ``pixel_scale_deg``
+    overrides for a model kind (the file is read once)."""
     from invglare.io.config import load_toml
     from invglare.io.model_config import build_model
 
     config = load_toml(model_path)
+    table = config.get("model")
+    kind = table.get("kind") if isinstance(table, dict) else None
+    grid = grid_of(kind) if grid_of is not None else {}
     return build_model(config, base_dir=model_path.parent, source=str(model_path), **grid)
-
-
-def _model_kind(model_path: Path) -> str | None:
-    from invglare.io.config import load_toml
-
-    table = load_toml(model_path).get("model")
-    return table.get("kind") if isinstance(table, dict) else None
 
 
 def _bright(image, threshold: float | None, max_bright: int):
@@ -173,13 +175,6 @@ def _bright(image, threshold: float | None, max_bright: int):
             max_bright,
         )
     return bright
-
-
-def _config_of(model) -> dict:
-    """The config written into an output's header."""
-    from invglare.io.model_config import model_to_config
-
-    return model_to_config(model)
 
 
 def _animation_target(out: Path) -> str:
