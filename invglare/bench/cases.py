@@ -233,7 +233,6 @@ def _kakimoto_camera_rgb(n: int):
     return lambda: forward(model)
 
 
-
 def _veiling_cooke(n: int):
     """The Cooke triplet's paraxial ghosts (examples/veiling_cooke.toml) on an N x N screen."""
     from pathlib import Path
@@ -251,6 +250,7 @@ def _veiling_cooke(n: int):
     angle = jnp.asarray([3.0, 1.5])
     forward = eqx.filter_jit(lambda m, a: m(a))
     return lambda: forward(model, angle)
+
 
 CASES: tuple[Case, ...] = (
     Case("fft_floor_scipy", "floor", "scipy.fft.fft2, complex64, 2 workers", _scipy_fft),

@@ -1,15 +1,13 @@
 """The fit benchmark: invglare's Levenberg–Marquardt against finite-difference least squares.
 
-One synthetic problem, solved side by side in the same process:
+A synthetic problem (a :class:`FitProblem`), solved side by side in the same process; the
+benchmark's own is :data:`DAYLIGHT_EYE`:
 
 - **the photo**: the daylight eye of ``examples/eye_daylight.toml`` (Kakimoto glare, fixed
   mask, 550 nm) on an `npix` x `npix` grid, turned into counts by an
   :class:`~invglare.fit.Observation` (flux 1e7, background 20, gain 2, read noise 3) and
   sampled with a fixed key;
-- **the free parameters**: pupil diameter, upper-lash count, source flux and background.
-  The lash count starts at a non-integer (39.4 for a truth of 40): a relaxed count has a
-  zero derivative at every integer (:mod:`invglare.aperture.eye`), so a local solver
-  moves it within one integer step, not across several;
+- **the free parameters**: pupil diameter, upper-lash count, source flux and background;
 - **invglare**: :func:`invglare.fit.fit` in float64 (LM with forward-mode Jacobians),
   with its compile and solve times reported apart;
 - **scipy**: ``scipy.optimize.least_squares(method="trf", jac="2-point")`` on the *same*
@@ -30,12 +28,13 @@ accepted steps. The target is the lower of the two float64 final losses, relaxed
 from __future__ import annotations
 
 import copy
+import dataclasses
 import datetime as dt
 import math
 import time
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 import equinox as eqx
 import jax
@@ -46,81 +45,120 @@ from jaxtyping import Array, Float
 from invglare.bench.timing import load_1m, measure
 from invglare.errors import ConfigError
 
-#: Names of the fit benchmarks, selectable like the per-size cases (``invglare bench fit``).
-FIT_CASES = ("fit_daylight_eye",)
-
 DIAMETER = "model.aperture.pupil.diameter_mm"
 LASHES = "model.aperture.upper_lashes.count"
-#: The photo's parameters (diameter and lash count as in examples/eye_daylight.toml).
-TRUTH = {DIAMETER: 3.0, LASHES: 40.0, "obs.flux": 1e7, "obs.background": 20.0}
-#: Where both solvers start (flux and background come from the photo, as a user would).
-START = {DIAMETER: 3.4, LASHES: 39.4}
 #: Two losses are "the same" within this relative difference (a chi-square of 16 000 to 0.016).
 LOSS_RTOL = 1e-6
 #: The same for the float32 runs: a float32 sum of 16 000 squares resolves about 1e-6 of
 #: itself, and their reference is only close to (not at) their own optimum.
 LOSS_RTOL_32 = 1e-4
-#: Aperture window (mm) when the config gives none: room for the largest pupil the bounds
-#: allow (4 mm) plus margin, so that truth and every trial diameter share one grid.
-WINDOW_MM = 4.2
 NOISE = {"gain": 2.0, "read_noise": 3.0}
 
 DEFAULT_CONFIG = Path(__file__).resolve().parents[2] / "examples" / "eye_daylight.toml"
 
 
-def _config(path: Path, npix: int) -> dict[str, Any]:
+class FreeParameter(NamedTuple):
+    """A parameter both solvers fit: its bounds, the photo's value and the common start."""
+
+    path: str
+    lower: float
+    upper: float
+    truth: float
+    start: float
+    short: str
+
+
+@dataclasses.dataclass(frozen=True)
+class FitProblem:
+    """A synthetic fit problem: a model config, its free parameters and the photo's light.
+
+    Flux and background are always free (nuisance parameters starting from the photo's own
+    estimates, as a user's fit would).
+    """
+
+    name: str
+    config_path: Path
+    free: tuple[FreeParameter, ...]
+    #: What is free, in words, for bench.md.
+    summary: str
+    #: Aperture window (mm) when the config gives none: room for every trial pupil, so
+    #: that the truth and the trials share one grid.
+    window_mm: float
+    flux: float = 1e7
+    background: float = 20.0
+
+    @property
+    def truth(self) -> dict[str, float]:
+        return {p.path: p.truth for p in self.free} | {
+            "obs.flux": self.flux,
+            "obs.background": self.background,
+        }
+
+    @property
+    def start(self) -> dict[str, float]:
+        return {p.path: p.start for p in self.free}
+
+    def short(self, path: str) -> str:
+        names = {p.path: p.short for p in self.free}
+        return names.get(path, {"obs.flux": "flux", "obs.background": "bg"}.get(path, path))
+
+
+#: The daylight eye of examples/eye_daylight.toml (diameter and lash count as there). The
+#: lash count starts at a non-integer: a relaxed count has a zero derivative at every
+#: integer (:mod:`invglare.aperture.eye`), so a local solver moves it within one integer
+#: step, not across several. Its upper bound is the example's ``n_max``.
+DAYLIGHT_EYE = FitProblem(
+    name="fit_daylight_eye",
+    config_path=DEFAULT_CONFIG,
+    free=(
+        FreeParameter(DIAMETER, 2.0, 4.0, truth=3.0, start=3.4, short="D"),
+        FreeParameter(LASHES, 0.0, 48.0, truth=40.0, start=39.4, short="lashes"),
+    ),
+    summary="pupil diameter, upper-lash count (start 39.4 for a truth of 40), flux, background",
+    window_mm=4.2,
+)
+
+#: The fit benchmarks by name, selectable like the per-size cases (``invglare bench fit``).
+FIT_PROBLEMS = {p.name: p for p in (DAYLIGHT_EYE,)}
+FIT_CASES = tuple(FIT_PROBLEMS)
+
+
+def _config(problem: FitProblem, npix: int) -> dict[str, Any]:
     from invglare.io.config import load_toml
 
-    path = Path(path)
+    path = Path(problem.config_path)
     if not path.is_file():
         raise ConfigError(
-            f"the fit benchmark builds its eye from {path}, which does not exist "
-            "(examples/eye_daylight.toml of the invglare repository)"
+            f"the fit benchmark {problem.name} builds its model from {path}, which does not exist"
         )
     config = copy.deepcopy(load_toml(path))
     model = config.setdefault("model", {})
     model["aperture_npix"] = npix
-    # The example fixes a window with room for the pupils a fit may try; without one, the
-    # window would follow the start's pupil and differ from the truth's.
-    model.setdefault("window_mm", WINDOW_MM)
+    # Without a fixed window, the window would follow the start's pupil and differ from
+    # the truth's.
+    model.setdefault("window_mm", problem.window_mm)
     config.setdefault("output", {})["npix"] = npix
     # The fit needs a monochrome PSF.
     config.setdefault("spectrum", {})["wavelengths_nm"] = 550.0
     return config
 
 
-def _with(model, values: dict[str, float]):
-    """`model` with its pupil diameter and upper-lash count from `values` (leaf dtypes kept)."""
-    for get, path in (
-        (lambda m: m.aperture.pupil.diameter_mm, DIAMETER),
-        (lambda m: m.aperture.upper_lashes.count, LASHES),
-    ):
-        model = eqx.tree_at(get, model, jnp.asarray(values[path], dtype=get(model).dtype))
-    return model
-
-
-def _problem(config: dict[str, Any], target: Float[np.ndarray, "h w"] | None):
-    """Model, template, space and target in the current default dtype.
-
-    Without a `target` the photo is made from the truth (fixed key) and returned.
-    """
+def _problem(problem: FitProblem, config: dict[str, Any]):
+    """Space, template and target in the current default dtype (photo from a fixed key)."""
     from invglare.fit import Forward, Observation, Parameter, ParameterSpace
     from invglare.io.model_config import build_model
 
     model = build_model(config)
-    if target is None:
-        truth_model = _with(model, TRUTH)
-        obs = Observation(flux=TRUTH["obs.flux"], background=TRUTH["obs.background"], **NOISE)
-        psf = eqx.filter_jit(lambda m: m())(truth_model)
-        target = np.asarray(obs.sample(jax.random.key(1), psf), dtype=np.float64)
+    free = [Parameter(p.path, p.lower, p.upper, init=p.start) for p in problem.free]
+    shape = ParameterSpace(free)
+    light = Observation(flux=problem.flux, background=problem.background, **NOISE)
+    truth = shape.apply(Forward(model, light), shape.values_from(problem.truth))
+    psf = eqx.filter_jit(lambda m: m())(truth.model)
+    target = np.asarray(light.sample(jax.random.key(1), psf), dtype=np.float64)
     obs = Observation.from_target(target, **NOISE)
-    template = Forward(_with(model, START), obs)
-    n_max = int(model.aperture.upper_lashes.n_max)
+    template = shape.apply(Forward(model, obs), shape.values_from(problem.start))
     space = ParameterSpace(
-        [
-            Parameter(DIAMETER, 2.0, 4.0, init=START[DIAMETER]),
-            Parameter(LASHES, 0.0, float(n_max), init=START[LASHES]),
-        ],
+        free,
         nuisance=[
             Parameter("obs.flux", 0.0, math.inf, init=float(obs.flux)),
             Parameter("obs.background", -100.0, 1000.0, init=float(obs.background)),
@@ -191,22 +229,22 @@ def _residual_jit(fn) -> Callable[[Float[Array, " p"]], Float[Array, " n"]]:
     return lambda z: compiled(fn, z)
 
 
-def fit_daylight_eye(
+def run_fit_benchmark(
+    problem: FitProblem = DAYLIGHT_EYE,
     npix: int = 128,
     *,
     max_steps: int = 256,
     scipy_max_nfev: int | None = None,
-    config_path: Path = DEFAULT_CONFIG,
     float32: bool = True,
 ) -> dict[str, Any]:
-    """Run the daylight-eye fit with invglare and with scipy; return one record.
+    """Run one fit problem with invglare and with scipy; return one record.
 
     **Arguments:**
 
+    - `problem`: the model and its free parameters (:data:`DAYLIGHT_EYE` by default).
     - `npix`: photo size (and aperture raster size), pixels.
     - `max_steps`: invglare's step budget; `scipy_max_nfev`: scipy's (None: its default,
       100 x the number of parameters). Small values are for testing the plumbing.
-    - `config_path`: the eye model (``examples/eye_daylight.toml``).
     - `float32`: also run the float32 finite-difference fits.
 
     **Returns:** a JSON-ready dict: the problem, ``invglare`` (compile / solve seconds,
@@ -220,16 +258,19 @@ def fit_daylight_eye(
 
     if int(npix) != npix or npix < 16:
         raise ConfigError(f"fit benchmark npix must be an integer >= 16, got {npix!r}")
-    config = _config(config_path, int(npix))
+    config = _config(problem, int(npix))
+    truth = problem.truth
     record: dict[str, Any] = {
-        "case": "fit_daylight_eye",
+        "case": problem.name,
         "kind": "fit",
         "npix": int(npix),
         "date": dt.datetime.now(dt.UTC).strftime("%Y-%m-%d %H:%M UTC"),
         "load_1m_start": load_1m(),
         "problem": {
-            "truth": dict(TRUTH),
-            "start": dict(START),
+            "truth": truth,
+            "start": problem.start,
+            "free": problem.summary,
+            "short": {path: problem.short(path) for path in truth},
             "noise": dict(NOISE),
             "views": {"pixels": 1.0},
             "loss_rtol": LOSS_RTOL,
@@ -238,11 +279,12 @@ def fit_daylight_eye(
 
     with jax.enable_x64(True):
         t0 = time.perf_counter()
-        space, template, target = _problem(config, None)
+        space, template, target = _problem(problem, config)
         record["setup_s"] = time.perf_counter() - t0
         prop = template.model.propagator
         record["problem"]["model"] = (
-            f"{Path(config_path).name}: Kakimoto fixed mask, 550 nm, {npix}x{npix} photo at "
+            f"{Path(problem.config_path).name}: {type(template.model).__name__}, 550 nm, "
+            f"{npix}x{npix} photo at "
             f"{float(prop.output.pixel_scale_deg):.4g} deg/px, {prop.grid.npix}x"
             f"{prop.grid.npix} aperture raster over {float(prop.grid.width_mm):.3g} mm, "
             f"{prop.method.upper()} propagation"
@@ -262,7 +304,7 @@ def fit_daylight_eye(
             {"pixels": 1.0},
             starts=starts,
             max_steps=max_steps,
-            truth=TRUTH,
+            truth=truth,
             progress=progress,
         )
         fn = make_residual_fn(space, template, target, {"pixels": 1.0})
@@ -303,12 +345,12 @@ def fit_daylight_eye(
 
     if float32:
         # --- the same in float32: the rendering precision, where FD steps break down ---
-        # The eye's random elements are drawn in the model's dtype, and jax.random gives
-        # different numbers for float32 and float64 from one key: the float32 model is a
-        # different eye. So it fits its own photo (same truth, same noise key), and its
-        # reference loss is at invglare's float64 solution (close to its own optimum: the
-        # truth values are the same).
-        space32, template32, target32 = _problem(config, None)
+        # Random elements (an eye's lashes and particles) are drawn in the model's dtype,
+        # and jax.random gives different numbers for float32 and float64 from one key: the
+        # float32 model is a different eye. So it fits its own photo (same truth, same
+        # noise key), and its reference loss is at invglare's float64 solution (close to
+        # its own optimum: the truth values are the same).
+        space32, template32, target32 = _problem(problem, config)
         fn32 = make_residual_fn(space32, template32, target32, {"pixels": 1.0})
         residual32 = _residual_jit(fn32)
         z0_32 = np.asarray(space32.initial_latent(), dtype=np.float64)
@@ -335,7 +377,7 @@ def fit_daylight_eye(
             run["reached_target"] = run["time_to_target_s"] is not None
             record[key] = run
 
-    record["ratios"] = _ratios(lm, sp64)
+    record["ratios"] = _ratios(lm, sp64, len(truth))
     record["load_1m_end"] = load_1m()
     return record
 
@@ -357,7 +399,7 @@ def _lm_time_to(stamps: list[tuple[float, float]], target: float, lm: dict) -> f
     return lm["solve_s"] if lm["final_loss"] <= target else None
 
 
-def _ratios(lm: dict, sp: dict) -> dict[str, float | None]:
+def _ratios(lm: dict, sp: dict, n_free: int) -> dict[str, float | None]:
     """scipy over invglare: > 1 means invglare is faster."""
 
     def ratio(a, b):
@@ -367,13 +409,17 @@ def _ratios(lm: dict, sp: dict) -> dict[str, float | None]:
         "time_to_target": ratio(sp["time_to_target_s"], lm["time_to_target_s"]),
         "full_solve": ratio(sp["wall_s"], lm["solve_s"]),
         "with_compile": ratio(sp["wall_s"] + sp["compile_s"], lm["solve_s"] + lm["compile_s"]),
-        "per_iteration_cost": ratio(sp["residual_ms"] * (1 + len(TRUTH)), lm["jacobian_ms"]),
+        "per_iteration_cost": ratio(sp["residual_ms"] * (1 + n_free), lm["jacobian_ms"]),
     }
 
 
 def fit_markdown(record: dict[str, Any]) -> list[str]:
     """The fit benchmark's section of bench.md."""
     lm, sp = record["invglare"], record["scipy_float64"]
+    short = record["problem"].get("short", {})
+
+    def values(v: dict[str, float]) -> str:
+        return ", ".join(f"{short.get(k, k)} {x:.5g}" for k, x in v.items())
 
     def s(x, fmt=".2f"):
         return "—" if x is None else format(x, fmt)
@@ -381,9 +427,9 @@ def fit_markdown(record: dict[str, Any]) -> list[str]:
     lines = [
         f"## Fit: {record['case']} ({record['npix']}² photo)",
         "",
-        f"Measured {record['date']}. {record['problem']['model']}. Free: pupil diameter, "
-        f"upper-lash count (start {START[LASHES]} for a truth of {TRUTH[LASHES]:g}), flux, "
-        f"background; truth {_fmt_values(TRUTH)}; pixel view (noise-normalised "
+        f"Measured {record['date']}. {record['problem']['model']}. Free: "
+        f"{record['problem'].get('free', ', '.join(record['problem']['truth']))}; truth "
+        f"{values(record['problem']['truth'])}; pixel view (noise-normalised "
         f"residuals). Load (1 min) {record['load_1m_start']} at the start, "
         f"{record['load_1m_end']} at the end.",
         "",
@@ -424,18 +470,19 @@ def fit_markdown(record: dict[str, Any]) -> list[str]:
         "up the residuals and compiling the covariance's Jacobian and the prediction).",
         "",
         f"Start loss {sp['start_loss']:.6g}. Fitted values: invglare "
-        + _fmt_values(lm["values"])
+        + values(lm["values"])
         + "; scipy float64 "
-        f"{_fmt_values(sp['values'])}.",
+        f"{values(sp['values'])}.",
     ]
     if "scipy_float32_default_step" in record:
         d = record["scipy_float32_default_step"]
         e = record["scipy_float32_eps32_step"]
         lines += [
             "",
-            "float32 finite differences (their own photo: the float32 eye draws its random "
-            "lashes and particles in float32, which jax.random makes a different eye from "
-            f"the same key; reference loss {record['float32_reference_loss']:.6g} at "
+            "float32 finite differences (their own photo: a float32 model draws its random "
+            "elements, such as an eye's lashes, in float32, which jax.random makes a "
+            "different model from the same key; reference loss "
+            f"{record['float32_reference_loss']:.6g} at "
             "invglare's float64 solution, target "
             f"{record['float32_target_loss']:.6g}): with scipy's default step (sized for "
             f"float64, ~1.5e-8 relative) the loss went from {d['start_loss']:.6g} to "
@@ -448,11 +495,6 @@ def fit_markdown(record: dict[str, Any]) -> list[str]:
     return lines
 
 
-def _fmt_values(values: dict[str, float]) -> str:
-    short = {DIAMETER: "D", LASHES: "lashes", "obs.flux": "flux", "obs.background": "bg"}
-    return ", ".join(f"{short.get(k, k)} {v:.5g}" for k, v in values.items())
-
-
 def _short(message: str) -> str:
     return message.split(";")[0].split(" (")[0].replace("|", "/")
 
@@ -462,4 +504,13 @@ def as_json(record: dict[str, Any]) -> dict[str, Any]:
     return jax.tree_util.tree_map(lambda x: x.item() if isinstance(x, np.generic) else x, record)
 
 
-__all__ = ["FIT_CASES", "as_json", "fit_daylight_eye", "fit_markdown"]
+__all__ = [
+    "DAYLIGHT_EYE",
+    "FIT_CASES",
+    "FIT_PROBLEMS",
+    "FitProblem",
+    "FreeParameter",
+    "as_json",
+    "fit_markdown",
+    "run_fit_benchmark",
+]

@@ -177,11 +177,11 @@ def run_bench(
     _add_ratios(records)
 
     for name in fits:
-        from invglare.bench.fit import as_json, fit_daylight_eye
+        from invglare.bench.fit import FIT_PROBLEMS, as_json, run_fit_benchmark
 
         log.info("running the fit benchmark %s at %d px (several minutes)", name, fit_npix)
         try:
-            fit_records.append(as_json(fit_daylight_eye(fit_npix)))
+            fit_records.append(as_json(run_fit_benchmark(FIT_PROBLEMS[name], fit_npix)))
         except Exception as err:
             log.error("fit benchmark %s failed:\n%s", name, traceback.format_exc())
             failed.append(f"{name}: {type(err).__name__}: {err}")

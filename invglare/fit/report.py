@@ -110,9 +110,7 @@ class ReportInfo:
 
 
 @contextlib.contextmanager
-def atomic_directory(
-    path: str | os.PathLike[str], keep: Sequence[str] = ()
-) -> Iterator[Path]:
+def atomic_directory(path: str | os.PathLike[str], keep: Sequence[str] = ()) -> Iterator[Path]:
     """Yield a temporary folder to fill; it replaces `path` as a whole on success.
 
     The temporary folder is a hidden sibling of `path` (same filesystem, so the
