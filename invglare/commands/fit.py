@@ -300,6 +300,24 @@ def _choice_label(choice: dict[str, int]) -> str:
     return ", ".join(f"{k.rsplit('.', 1)[-1]}={v}" for k, v in choice.items())
 
 
+def _model_sections(setup, result) -> dict[str, tuple[str, list[str], Any]]:
+    """Report sections particular to the model: the ghosts of a veiling fit."""
+    import jax
+
+    from invglare.models.veiling import VeilingGlare
+
+    if not isinstance(setup.forward.model, VeilingGlare):
+        return {}
+    from invglare.fit.ghost_report import ghost_section
+
+    with jax.enable_x64(True):
+        values = setup.space.values_from(result.values)
+        fitted = setup.space.apply(setup.forward, values).model
+        truth = setup.truth_model()
+        lines, data = ghost_section(fitted, truth)
+    return {"ghosts": ("Ghosts", lines, data)}
+
+
 def run_fit(
     config: Path,
     out_dir: Path | None = None,
@@ -382,6 +400,7 @@ def run_fit(
         discrete=discrete,
         discrete_truth={d.key: d.truth for d in setup.discrete},
         view_options=setup.view_options,
+        sections=_model_sections(setup, best),
     )
     info.wall_s = time.perf_counter() - t0
     folder = write_report(setup.out_dir, best, info)

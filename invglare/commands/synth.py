@@ -81,7 +81,11 @@ def synthesize(spec: SynthSpec) -> tuple[np.ndarray, dict[str, Any]]:
     import equinox as eqx
     import jax
 
-    from invglare.io.model_config import model_to_config
+    from invglare.io.model_config import (
+        model_pixel_scale_deg,
+        model_to_config,
+        model_wavelengths_nm,
+    )
 
     with jax.enable_x64(True):
         forward = build_truth_forward(spec)
@@ -103,8 +107,8 @@ def synthesize(spec: SynthSpec) -> tuple[np.ndarray, dict[str, Any]]:
         variance = np.asarray(forward.obs.variance(expected))
         obs = forward.obs
         model_config = model_to_config(forward.model)
-        model_scale = float(forward.model.propagator.output.pixel_scale_deg)
-        wavelengths = [float(w) for w in np.asarray(forward.model.spectrum.wavelengths_nm)]
+        model_scale = model_pixel_scale_deg(forward.model)
+        wavelengths = model_wavelengths_nm(forward.model)
 
     if not np.all(np.isfinite(photo)):
         raise ConfigError(f"{spec.path}: the synthetic photo has non-finite pixels")

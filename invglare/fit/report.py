@@ -87,6 +87,9 @@ class ReportInfo:
       "loss", "reduced_chi2", "converged", "message", "timing_s"}``.
     - `discrete_truth`: ``{key: value}`` of the discrete choices in the ground truth.
     - `view_options`: options of the views (for the profile figures).
+    - `sections`: model-specific results, ``{key: (title, markdown lines, JSON data)}``:
+      a section of ``report.md`` after the parameters and ``params.json[key]`` (e.g. the
+      ghosts of a veiling fit, :mod:`invglare.fit.ghost_report`).
     """
 
     name: str
@@ -103,6 +106,7 @@ class ReportInfo:
     discrete: list[dict[str, Any]] = dataclasses.field(default_factory=list)
     discrete_truth: dict[str, int | None] = dataclasses.field(default_factory=dict)
     view_options: dict[str, dict[str, Any]] = dataclasses.field(default_factory=dict)
+    sections: dict[str, tuple[str, list[str], Any]] = dataclasses.field(default_factory=dict)
 
 
 # --------------------------------------------------------------------------------------
@@ -430,6 +434,8 @@ def render_markdown(result: FitResult, info: ReportInfo, figures: Sequence[str])
                     f"{_fmt(c['reduced_chi2'], 4)} | {'yes' if c['converged'] else 'no'} |"
                 )
             lines.append("")
+    for title, section, _ in info.sections.values():
+        lines += ["", f"## {title}", "", *section]
     if result.stages:
         first = result.stages[0]
         scan = first.get("scan")
@@ -485,6 +491,8 @@ def report_dict(result: FitResult, info: ReportInfo) -> dict[str, Any]:
     }
     if table:
         data["discrete"] = table
+    for key, (_, _, extra) in info.sections.items():
+        data[key] = extra
     return _clean(data)
 
 

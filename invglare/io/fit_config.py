@@ -213,6 +213,15 @@ class FitSetup:
             for combo in itertools.product(*(d.values for d in self.discrete))
         ]
 
+    def truth_model(self):
+        """The model of the ground truth file (as the photo was made), or None without one."""
+        if self.truth_path is None:
+            return None
+        from invglare.io.model_config import build_model
+
+        data = json.loads(self.truth_path.read_text(encoding="utf-8"))
+        return build_model(data["model"], self.truth_path.parent, source=str(self.truth_path))
+
     def forward_for(self, choice: Mapping[str, int]):
         """The forward template with the model rebuilt for one discrete `choice`."""
         from invglare.fit import Forward
@@ -222,7 +231,7 @@ class FitSetup:
         config = copy.deepcopy(self.model_config)
         for key, value in choice.items():
             _set_key(config, key, value)
-        model = _build(config, self.model_path, self.target.shape[0], self.pixel_scale_deg,
+        model = _build(config, self.model_path, self.target.shape, self.pixel_scale_deg,
                        self.wavelength_nm)  # fmt: skip
         forward = Forward(model, self.forward.obs)
         self.space.check(forward)
@@ -281,13 +290,18 @@ def _set_key(config: dict[str, Any], key: str, value: Any) -> None:
         node[parts[-1]] = value
 
 
-def _build(config, model_path: Path, npix: int, scale: float, wavelength_nm: float | None):
+def _build(
+    config, model_path: Path, shape: tuple[int, ...], scale: float, wavelength_nm: float | None
+):
     from invglare.io.model_config import build_model
 
+    # A veiling model draws any screen; the PSF models' output grids are square (a
+    # non-square photo is refused where the photo is read).
+    veiling = config.get("model", {}).get("kind") == "veiling"
     return build_model(
         config,
         model_path.parent,
-        npix=npix,
+        npix=(int(shape[0]), int(shape[1])) if veiling else int(shape[0]),
         pixel_scale_deg=scale,
         wavelengths_nm=wavelength_nm,
         source=str(model_path),
@@ -304,6 +318,7 @@ def load_target(
     channel: str | None = None,
     linear: bool = False,
     saturation: float | None = None,
+    square: bool = True,
 ) -> tuple[np.ndarray, float | None]:
     """Read a target photo as float64 counts; **returns** ``(image, pixelScaleDeg or None)``.
 
@@ -311,7 +326,8 @@ def load_target(
     unreadable file, a display-encoded integer image (8-bit PNG/JPEG, integer TIFF:
     tone-mapped, not linear counts) unless `linear`, a float image that looks
     tone-mapped (every value a multiple of 1/255 in [0, 1]) unless `linear`, a
-    multi-channel image without `channel`, a non-square image, NaN/inf pixels, an
+    multi-channel image without `channel`, a non-square image (when `square`: the PSF
+    models' grids are square, the veiling model's screen is not), NaN/inf pixels, an
     image that is all zeros or constant, and one whose every pixel is at `saturation`.
     """
     from invglare.fit.observation import check_target
@@ -348,7 +364,7 @@ def load_target(
         raise InputDataError(
             f"target photo {path} has no channel {channel!r}; it has {', '.join(image.channels)}"
         )
-    if data.ndim != 2 or data.shape[0] != data.shape[1]:
+    if data.ndim != 2 or (square and data.shape[0] != data.shape[1]):
         raise InputDataError(
             f"target photo {path} is {data.shape[1]}x{data.shape[0]} pixels; crop it to a "
             "square centred on the light source (the model's output grid is square)"
@@ -511,7 +527,7 @@ def _read_truth(
     """Truth of each free path, resolved on the forward rebuilt from a ``*.truth.json``."""
     from invglare.fit import Forward, Observation
     from invglare.fit.params import _getter, resolve_path
-    from invglare.io.model_config import build_model
+    from invglare.io.model_config import build_model, model_pixel_scale_deg
 
     try:
         data = json.loads(path.read_text(encoding="utf-8"))
@@ -533,7 +549,7 @@ def _read_truth(
         if p.path == "obs.pixel_scale_ratio":
             # The ratio is model scale / photo scale: the fit's model is built at
             # `scale_deg`, the truth's at its own scale.
-            value *= scale_deg / float(truth_model.propagator.output.pixel_scale_deg)
+            value *= scale_deg / model_pixel_scale_deg(truth_model)
         truth[p.path] = value
     resolved = []
     for d in discrete:
@@ -705,9 +721,22 @@ def load_fit(
     tsec.finish()
     if saturation is not None and not (math.isfinite(saturation) and saturation > 0):
         raise ConfigError(f"target.saturation must be a level > 0 counts, got {saturation!r}")
+    msec = Section(config.get("model", {}), "model")
+    model_file = msec.get("config", str, required=True)
+    wavelength = msec.get("wavelength_nm", float, None)
+    msec.finish()
+    model_path = _resolve(base, model_file)
+    if not model_path.is_file():
+        raise ConfigError(f"model.config = {model_file!r}: {model_path} does not exist")
+    model_config = load_toml(model_path)
+
     target_path = _resolve(base, target_file)
     target, header_scale = load_target(
-        target_path, channel=channel, linear=linear, saturation=saturation
+        target_path,
+        channel=channel,
+        linear=linear,
+        saturation=saturation,
+        square=model_config.get("model", {}).get("kind") != "veiling",
     )
     scale = scale_override if scale_override is not None else header_scale
     if scale is None:
@@ -718,15 +747,7 @@ def load_fit(
     if not (math.isfinite(scale) and scale > 0):
         raise ConfigError(f"target pixel scale must be > 0 deg/px, got {scale!r}")
 
-    msec = Section(config.get("model", {}), "model")
-    model_file = msec.get("config", str, required=True)
-    wavelength = msec.get("wavelength_nm", float, None)
-    msec.finish()
-    model_path = _resolve(base, model_file)
-    if not model_path.is_file():
-        raise ConfigError(f"model.config = {model_file!r}: {model_path} does not exist")
-    model_config = load_toml(model_path)
-    model = _build(model_config, model_path, target.shape[0], scale, wavelength)
+    model = _build(model_config, model_path, target.shape, scale, wavelength)
     out_shape = eqx.filter_eval_shape(model).shape
     if len(out_shape) != 2:
         raise ConfigError(

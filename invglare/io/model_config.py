@@ -64,6 +64,8 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from invglare.aperture import Aperture, shape_from_config, shape_to_config
 from invglare.aperture.camera import CameraAperture, camera_to_config
 from invglare.aperture.eye import EyeAperture, eye_from_config, eye_to_config
@@ -233,3 +235,18 @@ def model_to_config(model: GlareModel) -> dict[str, Any]:
             "colourspace": spec.colourspace,
         },
     }
+
+
+def model_pixel_scale_deg(model: GlareModel) -> float:
+    """Degrees of field per pixel of a built model's image."""
+    if isinstance(model, VeilingGlare | TemporalGlare):
+        return float(model.pixel_scale_deg)
+    return float(model.propagator.output.pixel_scale_deg)
+
+
+def model_wavelengths_nm(model: GlareModel) -> list[float] | None:
+    """The wavelengths (nm) a built model's image is made at; None for the veiling model,
+    whose ghosts are drawn without a wavelength."""
+    if isinstance(model, VeilingGlare):
+        return None
+    return [float(w) for w in np.asarray(model.spectrum.wavelengths_nm).reshape(-1)]

@@ -128,6 +128,8 @@ class VeilingGlare(eqx.Module):
 
     - `ghosts`: a :class:`GhostSet` or :class:`LensGhosts` (its arrays are parameters).
     - `sigma_strength`: de-ringing strength (>= 0; a parameter).
+    - `light_angle_deg`: the light's direction ``(x, y)`` when a call gives none (a
+      parameter: a fit of a photo finds where its light was; default on axis).
     - `npix`: ``(ny, nx)`` screen size (static).
     - `pixel_scale_deg`: degrees per pixel (static).
     - `n_harmonics`: ``N``, the highest harmonic on each axis (static).
@@ -147,6 +149,7 @@ class VeilingGlare(eqx.Module):
     quadrature_nodes: int = eqx.field(static=True, default=48)
     chunk: int | None = eqx.field(static=True, default=None)
     period_factor: float = eqx.field(static=True, default=2.0)
+    light_angle_deg: Float[Array, " 2"] = eqx.field(converter=_float, default=(0.0, 0.0))
 
     def __check_init__(self):
         if not isinstance(self.ghosts, GhostSet | LensGhosts):
@@ -160,6 +163,7 @@ class VeilingGlare(eqx.Module):
             s = np.asarray(self.sigma_strength, dtype=float)
             if s.shape != () or not np.isfinite(s) or s < 0:
                 raise PhysicsRangeError(f"sigma_strength must be a number >= 0, got {s}")
+        check_light_angle(self.light_angle_deg)
 
     @classmethod
     def build(
@@ -177,6 +181,7 @@ class VeilingGlare(eqx.Module):
         quadrature_nodes: int = 48,
         chunk: int | None = None,
         period_factor: float = 2.0,
+        light_angle_deg: Float[ArrayLike, " 2"] = (0.0, 0.0),
     ) -> VeilingGlare:
         """Validate every choice and build the model.
 
@@ -198,6 +203,7 @@ class VeilingGlare(eqx.Module):
         - `period_factor`: period of the series in units of the larger screen side
           (2 in the paper; more keeps large off-screen ghosts from wrapping round, at
           the cost of resolution for a given `n_harmonics`).
+        - `light_angle_deg`: the light's direction ``(x, y)`` (deg) for calls without one.
 
         **Example:**
 
@@ -237,6 +243,7 @@ class VeilingGlare(eqx.Module):
             quadrature_nodes=int(quadrature_nodes),
             chunk=chunk,
             period_factor=float(period_factor),
+            light_angle_deg=light_angle_deg,
         )
 
     # ----------------------------------------------------------------------------- geometry
@@ -268,9 +275,12 @@ class VeilingGlare(eqx.Module):
 
     # ----------------------------------------------------------------------------- outputs
 
-    def ghosts_at(self, light_angle_deg: Float[ArrayLike, " 2"] = (0.0, 0.0)) -> GhostSet:
+    def _angle(self, light_angle_deg: Float[ArrayLike, " 2"] | None) -> Float[Array, " 2"]:
+        return self.light_angle_deg if light_angle_deg is None else _float(light_angle_deg)
+
+    def ghosts_at(self, light_angle_deg: Float[ArrayLike, " 2"] | None = None) -> GhostSet:
         """The ghosts (positions, radii, intensities) for a light at `light_angle_deg`."""
-        angle = _float(light_angle_deg)
+        angle = self._angle(light_angle_deg)
         check_light_angle(angle)
         return self.ghosts.at(angle, self.profile)
 
@@ -304,7 +314,7 @@ class VeilingGlare(eqx.Module):
         cut = jnp.maximum(cover, 0.5 * (cover + limit))
         return intensity, jnp.minimum(ghosts.radius_deg, cut)
 
-    def wraps(self, light_angle_deg: Float[ArrayLike, " 2"] = (0.0, 0.0)) -> Array:
+    def wraps(self, light_angle_deg: Float[ArrayLike, " 2"] | None = None) -> Array:
         """Which drawn ghosts reach the screen again through the periodicity (``(K,)`` bool).
 
         A visible ghost of drawn radius ``R`` and softness ``s`` centred at ``c`` stays
@@ -321,7 +331,7 @@ class VeilingGlare(eqx.Module):
         return beyond & (intensity > 0)
 
     def coefficients(
-        self, light_angle_deg: Float[ArrayLike, " 2"] = (0.0, 0.0)
+        self, light_angle_deg: Float[ArrayLike, " 2"] | None = None
     ) -> SeriesCoefficients:
         """Aggregated series coefficients (sr⁻¹) for a light at `light_angle_deg` (eq. 20-23).
 
@@ -352,16 +362,19 @@ class VeilingGlare(eqx.Module):
             image = jnp.maximum(image, 0.0)
         return image
 
-    def gsf(self, light_angle_deg: Float[ArrayLike, " 2"] = (0.0, 0.0)) -> Float[Array, "ny nx"]:
+    def gsf(self, light_angle_deg: Float[ArrayLike, " 2"] | None = None) -> Float[Array, "ny nx"]:
         """The glare spread function on the screen (sr⁻¹), before the positivity floor."""
-        angle = _float(light_angle_deg)
+        angle = self._angle(light_angle_deg)
         check_light_angle(angle)
         return _jitted_gsf(self, angle)
 
     def __call__(
-        self, light_angle_deg: Float[ArrayLike, " 2"] = (0.0, 0.0)
+        self, light_angle_deg: Float[ArrayLike, " 2"] | None = None
     ) -> Float[Array, "ny nx"]:
         """Veiling-glare image for a light at `light_angle_deg` = (x, y) deg.
+
+        Without an angle, the light is at the model's own `light_angle_deg` (the leaf a
+        fit adjusts).
 
         **Returns:** ``(ny, nx)``, fraction of the light's flux per pixel, with the
         optical axis at pixel ``(ny // 2, nx // 2)``; the light's direct image would
@@ -373,7 +386,7 @@ class VeilingGlare(eqx.Module):
         image = model(jnp.array([3.0, 1.0]))
         ```
         """
-        angle = _float(light_angle_deg)
+        angle = self._angle(light_angle_deg)
         check_light_angle(angle)
         # Validated here, where values are concrete; the work is one compiled program
         # (inlined when the caller is itself jitted).
@@ -397,9 +410,9 @@ class VeilingGlare(eqx.Module):
             return jax.vmap(self._image)(angles)
         return jax.lax.map(self._image, angles, batch_size=int(batch_size))
 
-    def direct_fraction(self, light_angle_deg: Float[ArrayLike, " 2"] = (0.0, 0.0)) -> Array:
+    def direct_fraction(self, light_angle_deg: Float[ArrayLike, " 2"] | None = None) -> Array:
         """Share of the light in the source's direct image (not part of the image)."""
-        return self.ghosts.direct_fraction(_float(light_angle_deg))
+        return self.ghosts.direct_fraction(self._angle(light_angle_deg))
 
     def veiling_glare_index(
         self, spot_radius_deg: float, field_radius_deg: float | None = None
@@ -416,12 +429,13 @@ class VeilingGlare(eqx.Module):
         vgi = model.veiling_glare_index(spot_radius_deg=0.5)
         ```
         """
+        on_axis = (0.0, 0.0)
         return veiling_glare_index(
-            self(),
+            self(on_axis),
             self.pixel_scale_deg,
             spot_radius_deg,
             field_radius_deg,
-            direct_fraction=self.direct_fraction(),
+            direct_fraction=self.direct_fraction(on_axis),
         )
 
 

@@ -13,6 +13,7 @@
     pixel_average = true
     quadrature_nodes = 48         # for profile = "cosine"
     period_factor = 2.0           # series period / larger screen side (sec. 4.1)
+    light_angle_deg = [0.0, 0.0]  # the light's direction (x, y) when none is given
 
     [model.ghosts]                # free ghosts (what a fit adjusts) ...
     position_deg = [[0.0, 0.0], [1.5, -0.5]]
@@ -445,6 +446,7 @@ def veiling_from_config(
         pixel_average=m.get("pixel_average", (bool,), True),
         quadrature_nodes=m.get("quadrature_nodes", (int,), 48),
         period_factor=m.get("period_factor", (float,), 2.0),
+        light_angle_deg=m.numbers("light_angle_deg", (0.0, 0.0), shape="a pair [x, y] of angles"),
     )
     ghost_table = m.get("ghosts", (dict,), None)
     lens_table = m.get("lens", (dict,), None)
@@ -498,6 +500,7 @@ def veiling_to_config(model: VeilingGlare) -> dict[str, Any]:
         "pixel_average": model.pixel_average,
         "quadrature_nodes": model.quadrature_nodes,
         "period_factor": model.period_factor,
+        "light_angle_deg": np.asarray(model.light_angle_deg, dtype=float).tolist(),
     }
     source = model.ghosts
     if isinstance(source, GhostSet):
