@@ -329,8 +329,12 @@ def run_fit(
     import jax
 
     from invglare.fit.report import ReportInfo, write_report
+    from invglare.io.config import load_toml
     from invglare.io.fit_config import load_fit
+    from invglare.io.reference_fit_config import is_reference_fit
 
+    if is_reference_fit(load_toml(config)):
+        return run_reference_fit(config, out_dir, n_starts, max_steps, progress)
     t0 = time.perf_counter()
     with jax.enable_x64(True):
         setup = load_fit(config, out_dir=out_dir, n_starts=n_starts, max_steps=max_steps)
@@ -408,4 +412,36 @@ def run_fit(
         log.info("best discrete choice: %s", _choice_label(best_choice))
     log.info("%s", best.summary())
     log.info("wrote %s (report.md, params.json, figures) in %.1f s", folder, info.wall_s)
+    return folder
+
+
+def run_reference_fit(
+    config: Path,
+    out_dir: Path | None = None,
+    n_starts: int | None = None,
+    max_steps: int | None = None,
+    progress: bool = True,
+) -> Path:
+    """Fit the eye's radial GSF to a reference (``[reference]``); write its report folder."""
+    from invglare.io.reference_fit_config import load_reference_fit
+    from invglare.reference.cie_fit import write_gsf_report
+
+    t0 = time.perf_counter()
+    ref = load_reference_fit(config, out_dir=out_dir, n_starts=n_starts, max_steps=max_steps)
+    setup = ref.setup
+    log.info(
+        "fitting the eye's GSF to %s over %.3g-%.3g deg in %d annuli, %d start(s); compiling "
+        "the model first",
+        ref.describe(),
+        setup.theta_min_deg,
+        setup.max_angle_deg(),
+        setup.n_bins,
+        setup.n_starts,
+    )
+    result = ref.run(progress=progress)
+    log.info("%s", result.summary())
+    folder = write_gsf_report(
+        result, ref.out_dir, reference=ref.describe(), config_path=ref.config_path
+    )
+    log.info("wrote %s (report.md, fit.json, gsf.png) in %.1f s", folder, time.perf_counter() - t0)
     return folder

@@ -349,22 +349,26 @@ def model_gsf(model, bins: RadialBins) -> Float[Array, " n_bins"]:
     return bins.mean(photopic_psf(model)) / omega
 
 
-def cie_target(age: float, pigmentation: float, bins: RadialBins) -> np.ndarray:
-    """The CIE GSF (sr⁻¹) averaged over each annulus's pixel centres, like :func:`model_gsf`."""
+def annulus_mean(gsf: Callable[[Any], Any], bins: RadialBins) -> np.ndarray:
+    """A radial function (of angle in degrees) averaged over each annulus's pixel centres,
+    the way :func:`model_gsf` averages the model: both are point samples of one function."""
     import jax
 
+    with jax.enable_x64(True):
+        inside = bins.index < bins.n_bins
+        values = np.zeros(bins.index.size)
+        values[inside] = np.asarray(gsf(bins.pixel_theta_deg.ravel()[inside]))
+    sums = np.bincount(bins.index, weights=values, minlength=bins.n_bins + 1)[: bins.n_bins]
+    return sums / bins.counts
+
+
+def cie_target(age: float, pigmentation: float, bins: RadialBins) -> np.ndarray:
+    """The CIE GSF (sr⁻¹) averaged over each annulus's pixel centres, like :func:`model_gsf`."""
     from invglare.reference.cie import cie_gsf
 
     # Validate age and pigmentation on scalars first: errors then name the value.
     cie_gsf(1.0, age, pigmentation)
-    with jax.enable_x64(True):
-        inside = bins.index < bins.n_bins
-        values = np.zeros(bins.index.size)
-        values[inside] = np.asarray(
-            cie_gsf(bins.pixel_theta_deg.ravel()[inside], age, pigmentation)
-        )
-    sums = np.bincount(bins.index, weights=values, minlength=bins.n_bins + 1)[: bins.n_bins]
-    return sums / bins.counts
+    return annulus_mean(lambda t: cie_gsf(t, age, pigmentation), bins)
 
 
 # ------------------------------------------------------------------------------ fitting
@@ -713,10 +717,15 @@ def _figure(results: Sequence[CieFitResult], path: Path, title: str) -> None:
     wide = np.geomspace(0.1, 100.0, 300)
     for k, res in enumerate(results):
         c = colours[k % len(colours)]
-        with jax.enable_x64(True):
-            curve = np.asarray(cie_gsf(wide, res.age, res.pigmentation))
-        name = f"A={res.age:g}, p={res.pigmentation:g}"
-        ax.loglog(wide, curve, color=c, lw=1, alpha=0.5, label=f"CIE {name}")
+        if res.age is None:  # a reference that is not the CIE's: its annulus means
+            name = res.label
+            ax.loglog(res.theta_deg, res.target_gsf, "s", color=c, ms=4, mfc="none",
+                      label=f"reference {name}")  # fmt: skip
+        else:
+            with jax.enable_x64(True):
+                curve = np.asarray(cie_gsf(wide, res.age, res.pigmentation))
+            name = f"A={res.age:g}, p={res.pigmentation:g}"
+            ax.loglog(wide, curve, color=c, lw=1, alpha=0.5, label=f"CIE {name}")
         ax.loglog(res.theta_deg, res.model_gsf, "o-", color=c, ms=3, label=f"eye model {name}")
         axr.semilogx(res.theta_deg, res.residual_log10, "o-", color=c, ms=3)
     lo, hi = results[0].theta_deg[0], results[0].theta_deg[-1]
@@ -726,7 +735,8 @@ def _figure(results: Sequence[CieFitResult], path: Path, title: str) -> None:
     ax.set_title(title)
     ax.legend(fontsize=7)
     axr.axhline(0.0, color="0.3", lw=0.8)
-    axr.set_ylabel("log10(model / CIE)")
+    cie = all(r.age is not None for r in results)
+    axr.set_ylabel("log10(model / CIE)" if cie else "log10(model / reference)")
     axr.set_xlabel("angle from the source (deg)")
     with atomic_path(path) as tmp:
         fig.savefig(tmp, dpi=90)
@@ -809,6 +819,82 @@ def write_cie_report(
     path = folder / "cie.md"
     write_text_atomic(path, text)
     return path
+
+
+def write_gsf_report(
+    result: CieFitResult,
+    folder: str | os.PathLike[str],
+    *,
+    reference: str,
+    config_path: str | os.PathLike[str] | None = None,
+) -> Path:
+    """Write one reference fit's report folder: ``report.md``, ``gsf.png``, ``fit.json``.
+
+    The folder is replaced as a whole once complete (an interrupted run leaves the
+    previous report). `reference` says in words what was fitted (the CIE's age and
+    pigmentation, or the file). **Returns:** the folder.
+    """
+    from invglare.fit.report import atomic_directory
+    from invglare.io.atomic import dumps_json
+
+    setup = result.setup
+    beyond = (
+        ""
+        if result.energy_beyond is None
+        else f" The CIE puts {100 * result.energy_beyond:.1f} % of its light within 100° "
+        "beyond the fitted range, which this fit says nothing about."
+    )
+    lines = [
+        f"# Reference fit: {result.label}",
+        "",
+        f"- **Reference:** {reference}",
+        f"- **Config:** `{config_path}`" if config_path else None,
+        f"- **Model:** a {setup.pupil_diameter_mm:g} mm pupil at {min(setup.wavelengths_nm):g}-"
+        f"{max(setup.wavelengths_nm):g} nm ({len(setup.wavelengths_nm)} wavelengths, "
+        f"V(λ)-weighted), particle populations {', '.join(p.region for p in setup.populations)}"
+        f", {setup.aperture_npix} pupil samples, {setup.npix}² output pixels of "
+        f"{setup.pixel_scale_deg:g}° (MFT), seed {setup.seed}",
+        f"- **Fitted:** the radially averaged GSF in {setup.n_bins} logarithmic annuli over "
+        f"{setup.theta_min_deg:g}°–{setup.max_angle_deg():.3g}° (the raster is alias-free to "
+        f"{setup.alias_free_deg():.3g}°), residuals `log10(model / reference)`; "
+        f"Levenberg–Marquardt from {len(result.starts)} start(s)",
+        "",
+        "## Result",
+        "",
+        f"Residual **{result.rms_log10:.3f}** log10 units rms, {result.max_log10:.3f} at worst "
+        f"(a factor {10**result.rms_log10:.3f} and {10**result.max_log10:.3f}); "
+        f"{'converged' if result.converged else 'stopped at max_steps'} after "
+        f"{result.n_steps} steps; {result.seconds:.0f} s. The fitted particles block "
+        f"{100 * result.blocked_fraction:.0f} % of the pupil's light.{beyond}",
+        "",
+        "| parameter | value |",
+        "|---|---:|",
+        *(f"| `{p}` ({_short(p)}) | {v:.5g} |" for p, v in result.values.items()),
+        "",
+        "| angle (deg) | reference (sr⁻¹) | model (sr⁻¹) | log10(model / reference) |",
+        "|---:|---:|---:|---:|",
+        *(
+            f"| {t:.3g} | {a:.4g} | {m:.4g} | {r:+.3f} |"
+            for t, a, m, r in zip(
+                result.theta_deg,
+                result.target_gsf,
+                result.model_gsf,
+                result.residual_log10,
+                strict=True,
+            )
+        ),
+        "",
+        "![GSF](gsf.png)",
+        "",
+        "The particle counts and radii are effective values of this diffraction model (opaque",
+        "particles in one plane), not counts of cells; see `invglare/reference/cie_fit.py`.",
+        "",
+    ]
+    with atomic_directory(folder) as tmp:
+        _figure([result], tmp / "gsf.png", result.label)
+        (tmp / "report.md").write_text("\n".join(x for x in lines if x is not None), "utf-8")
+        (tmp / "fit.json").write_text(dumps_json(result.to_dict()), "utf-8")
+    return Path(folder)
 
 
 def _what_moved(results: Sequence[CieFitResult], paths: list[str]) -> str:
