@@ -241,7 +241,8 @@ def bench(
     """Benchmark the pipelines against the bare FFT floor measured in the same run.
 
     Also runs the fit benchmark (invglare's fit against scipy's finite-difference least
-    squares on the same problem, once, not per size) unless skipped.
+    squares on the same problem, once, not per size) and the sampling benchmark (emcee
+    steps of the daylight-eye posterior, batched and per walker) unless skipped.
     """
     from invglare.bench.runner import run_bench
     from invglare.errors import ConfigError

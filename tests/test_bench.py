@@ -24,6 +24,7 @@ from invglare.bench.runner import (
     run_bench,
     select,
 )
+from invglare.bench.sample import SAMPLE_CASES
 from invglare.bench.timing import measure
 from invglare.cli import app
 from invglare.errors import ConfigError
@@ -122,7 +123,7 @@ def test_add_ratios_from_synthetic_records():
 def test_select_patterns_skip_and_fit():
     cases, fits = select([])
     assert [c.name for c in cases] == [c.name for c in CASES]
-    assert fits == list(FIT_CASES)
+    assert fits == [*FIT_CASES, *SAMPLE_CASES]
     # A pattern brings the floors and JAX's FFT along, and leaves the fit out.
     cases, fits = select(["psf_mono"])
     names = {c.name for c in cases}
@@ -131,8 +132,10 @@ def test_select_patterns_skip_and_fit():
     # Only the fit: no per-size cases at all.
     cases, fits = select(["fit"])
     assert cases == [] and fits == ["fit_daylight_eye"]
-    # Everything but the fit.
-    cases, fits = select([], ["fit"])
+    cases, fits = select(["sample"])
+    assert cases == [] and fits == ["sample_daylight_eye"]
+    # Everything but the fit and the sampling.
+    cases, fits = select([], ["fit", "sample"])
     assert fits == [] and {c.name for c in cases} == {c.name for c in CASES}
     # Skipping never drops the floors the ratios need.
     cases, _ = select(["eye"], ["fft"])
@@ -271,3 +274,40 @@ def test_fit_benchmark_plumbing_on_a_small_disk(tmp_path):
     md = "\n".join(fit_markdown(record))
     assert "## Fit: fit_small_disk" in md and "scipy trf" in md and "float32" in md
     assert "Free: disk diameter, flux, background; truth D 3, flux 1e+07, bg 20" in md
+
+
+# --------------------------------------------------------------------------------------
+# the sampling benchmark
+
+
+def test_sample_benchmark_times_batched_and_per_walker_steps_of_a_fit(tmp_path):
+    """A small disk fit, then emcee steps of its posterior in every mode; with a committed
+    chain's tau, the effective samples per second follow from the step time."""
+    from test_fit_cli import invoke, make_problem, write_fit
+
+    from invglare.bench.sample import run_sample_benchmark, sample_markdown
+
+    make_problem(tmp_path)
+    config = write_fit(tmp_path)
+    config.write_text('[fit]\nout_dir = "report"\n' + config.read_text())
+    with pytest.raises(ConfigError, match="run invglare fit"):
+        run_sample_benchmark(n_steps=1, config_path=config)
+    assert invoke("fit", config, "--no-progress").exit_code == 0
+    posterior = tmp_path / "report" / "posterior"
+    posterior.mkdir()
+    taus = {"a": {"tau": 20.0}, "b": {"tau": 40.0}}
+    (posterior / "summary.json").write_text(
+        json.dumps({"parameters": taus, "n_walkers": 32, "n_steps": 3000})
+    )
+    record = run_sample_benchmark(n_steps=2, config_path=config, batches=(16, 4))
+    json.dumps(record)
+    assert record["tau_max"] == 40.0 and record["n_walkers"] == 32 and record["photo"] == [64, 64]
+    modes = [(m["mode"], m["batch_size"]) for m in record["modes"]]
+    assert modes == [("vectorize on", 16), ("vectorize on", 4), ("vectorize off", None)]
+    for m in record["modes"]:
+        assert m["step_ms"] >= m["min_step_ms"] > 0 and m["first_step_s"] > 0
+        assert m["walker_eval_ms"] == pytest.approx(m["step_ms"] / 32)
+        assert m["effective_samples_per_s"] == pytest.approx(32 / (40.0 * m["step_ms"] / 1e3))
+    md = "\n".join(sample_markdown(record))
+    assert "## Sampling: sample_daylight_eye (64x64 photo)" in md and "tau_max = 40.0" in md
+    assert "| vectorize off | — |" in md

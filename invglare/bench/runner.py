@@ -6,7 +6,9 @@ Two kinds of record go to ``reports/bench.json`` (``{"meta", "records", "fit"}``
 - **per-size timings** (:data:`invglare.bench.cases.CASES`), each with its ratio to the
   fastest bare FFT of the same size measured in the same run;
 - **fit benchmarks** (:data:`invglare.bench.fit.FIT_CASES`), run once (not per size):
-  invglare's fit against scipy's finite-difference least squares, side by side.
+  invglare's fit against scipy's finite-difference least squares, side by side; and the
+  **sampling benchmark** (:data:`invglare.bench.sample.SAMPLE_CASES`): emcee steps of a
+  posterior with batched and per-walker log-probabilities (kept with the fit records).
 
 Speed is only ever reported as ratios of times measured in the same run, never asserted.
 """
@@ -27,6 +29,7 @@ from tqdm import tqdm
 from invglare.bench.cases import CASES as STATIC_CASES
 from invglare.bench.cases import Case
 from invglare.bench.fit import FIT_CASES
+from invglare.bench.sample import SAMPLE_CASES
 from invglare.bench.temporal_cases import TEMPORAL_CASES
 from invglare.bench.timing import load_1m, measure
 from invglare.errors import ConfigError
@@ -74,9 +77,9 @@ def select(patterns: list[str], skip: list[str] | None = None) -> tuple[list[Cas
     # The references every ratio is taken against run with any pipeline.
     always = [c for c in CASES if c.kind == "floor" or c.name in REFERENCES]
     cases = [c for c in CASES if c in pipelines or (pipelines and c in always)]
-    fits = [name for name in FIT_CASES if wanted(name)]
+    fits = [name for name in (*FIT_CASES, *SAMPLE_CASES) if wanted(name)]
     if not pipelines and not fits:
-        names = ", ".join([c.name for c in CASES] + list(FIT_CASES))
+        names = ", ".join([c.name for c in CASES] + list(FIT_CASES) + list(SAMPLE_CASES))
         raise ConfigError(
             f"no benchmark case matches {patterns}"
             + (f" once {skip} are skipped" if skip else "")
@@ -178,12 +181,18 @@ def run_bench(
 
     for name in fits:
         from invglare.bench.fit import FIT_PROBLEMS, as_json, run_fit_benchmark
+        from invglare.bench.sample import run_sample_benchmark
 
-        log.info("running the fit benchmark %s at %d px (several minutes)", name, fit_npix)
         try:
-            fit_records.append(as_json(run_fit_benchmark(FIT_PROBLEMS[name], fit_npix)))
+            if name in SAMPLE_CASES:
+                log.info("running the sampling benchmark %s (a few minutes)", name)
+                record = run_sample_benchmark()
+            else:
+                log.info("running the fit benchmark %s at %d px (minutes)", name, fit_npix)
+                record = run_fit_benchmark(FIT_PROBLEMS[name], fit_npix)
+            fit_records.append(as_json(record))
         except Exception as err:
-            log.error("fit benchmark %s failed:\n%s", name, traceback.format_exc())
+            log.error("benchmark %s failed:\n%s", name, traceback.format_exc())
             failed.append(f"{name}: {type(err).__name__}: {err}")
         save_partial()
 
@@ -263,6 +272,7 @@ def _num(x: float | None, fmt: str) -> str:
 def render_markdown(records: list[dict], meta: dict, fit_records: list[dict] | None = None) -> str:
     """bench.md: notes, a ratio overview (case x N), the full table, the fit section."""
     from invglare.bench.fit import fit_markdown
+    from invglare.bench.sample import sample_markdown
 
     lines = [
         "# invglare benchmarks",
@@ -328,5 +338,8 @@ def render_markdown(records: list[dict], meta: dict, fit_records: list[dict] | N
         lines += ["", "## Failed cases", ""]
         lines += [f"- {failure}" for failure in failures]
     for record in fit_records or []:
-        lines += ["", *fit_markdown(record)]
+        section = (
+            sample_markdown(record) if record.get("kind") == "sample" else fit_markdown(record)
+        )
+        lines += ["", *section]
     return "\n".join(lines) + "\n"
