@@ -32,6 +32,7 @@ from invglare.bench.fit import FIT_CASES
 from invglare.bench.sample import SAMPLE_CASES
 from invglare.bench.temporal_cases import TEMPORAL_CASES
 from invglare.bench.timing import load_1m, measure
+from invglare.bench.veiling_cases import VEILING_CASES
 from invglare.errors import ConfigError
 
 log = logging.getLogger("invglare")
@@ -41,8 +42,9 @@ BUDGET_S = 20.0
 
 #: Per-size cases that run with every selection, like the floors: the ratios use them.
 REFERENCES = ("fft_jax",)
-#: Every per-size case: the static models, then the temporal model's frame pipeline.
-CASES: tuple[Case, ...] = (*STATIC_CASES, *TEMPORAL_CASES)
+#: Every per-size case: the static models, the temporal model's frame pipeline, and the
+#: veiling series against the ghost count.
+CASES: tuple[Case, ...] = (*STATIC_CASES, *TEMPORAL_CASES, *VEILING_CASES)
 
 #: Header notes of bench.md (also in bench.json's meta).
 NOTES = (
