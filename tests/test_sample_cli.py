@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import textwrap
+from pathlib import Path
 
 import jax
 import numpy as np
@@ -87,3 +88,21 @@ def test_sample_command_fits_samples_resumes_and_reports(tmp_path):
     assert r.exit_code == 0, r.output
     summary = json.loads((post_dir / "summary.json").read_text())
     assert summary["n_steps"] == 80 and [x["start_step"] for x in summary["runs"]] == [0, 60]
+
+
+def test_committed_daylight_posterior_converged_and_covers_the_truth():
+    """reports/eye_daylight/posterior: `invglare sample fits/eye_daylight.toml` as committed."""
+    folder = Path(__file__).resolve().parents[1] / "reports" / "eye_daylight" / "posterior"
+    for name in ("summary.md", "corner.png", "trace.png", "predictive.png", "chain.h5"):
+        assert (folder / name).is_file(), name
+    summary = json.loads((folder / "summary.json").read_text())
+    assert summary["converged"] and summary["n_walkers"] == 32
+    taus = [p["tau"] for p in summary["parameters"].values()]
+    assert summary["n_steps"] > summary["tau_factor"] * max(taus)
+    assert 0.2 < summary["acceptance_fraction"]["mean"] < 0.6
+    for path in (
+        "model.aperture.pupil.diameter_mm",
+        "model.aperture.upper_lashes.count",
+        "model.aperture.upper_lashes.mean_angle_deg",
+    ):
+        assert summary["parameters"][path]["truth_in_95"], path
