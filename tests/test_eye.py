@@ -591,3 +591,31 @@ def test_presets_have_their_documented_values():
     assert day.extent_mm() == pytest.approx(3.0)
     table = eye_to_config(night)
     assert eye_to_config(eye_from_config(table)) == table
+
+
+# ---------------------------------------------------------------------------------------
+# pupil decentration and the gratings' annulus
+
+
+def test_decentred_pupil_is_the_centred_one_shifted():
+    """A decentration of a whole number of pixels shifts the pupil's raster by them."""
+    grid = _grid()
+    pitch = float(grid.pitch_mm)
+    centred = np.asarray(Pupil(1.2).coverage(grid))
+    moved = np.asarray(Pupil(1.2, decentration_mm=(3 * pitch, -2 * pitch)).coverage(grid))
+    # float32 coordinates: the edge pixels agree to a few 1e-6
+    np.testing.assert_allclose(moved, np.roll(centred, (-2, 3), axis=(0, 1)), atol=1e-5)
+    assert not np.allclose(moved, centred, atol=1e-3)
+
+
+def test_grating_patches_fill_their_annulus_uniformly_in_area():
+    gratings = Gratings(count=400.0, n_max=400, key=KEY, inner_radius_mm=0.6, outer_radius_mm=1.3)
+    starts, ends, _ = gratings.lines()
+    # A patch's centre is the mean of its lines' midpoints.
+    mids = 0.5 * (np.asarray(starts) + np.asarray(ends))
+    centres = mids.reshape(400, gratings.lines_per_grating, 2).mean(axis=1)
+    rho = np.hypot(centres[:, 0], centres[:, 1])
+    assert rho.min() >= 0.6 - 1e-6 and rho.max() <= 1.3 + 1e-6
+    # Uniform in area: half the patches inside the radius that halves the annulus's area.
+    half = math.sqrt(0.5 * (0.6**2 + 1.3**2))
+    assert abs(np.mean(rho < half) - 0.5) < 0.08
