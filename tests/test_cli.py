@@ -91,6 +91,25 @@ def test_psf_fresnel_example_runs_on_fft_path(tmp_path):
     assert img.config["model"]["propagation"] == "fresnel"
 
 
+@pytest.mark.parametrize("name", ["eye_daylight", "camera_cross_screen"])
+def test_psf_and_render_take_the_eye_and_camera_configs(tmp_path, name):
+    """The Kakimoto models from the CLI: a PSF with its config in the header, then a scene
+    convolved with it (light moved around, not created)."""
+    out = tmp_path / f"{name}.exr"
+    result = invoke("psf", EXAMPLES / f"{name}.toml", "--npix", 64, "--out", out)
+    assert result.exit_code == 0, result.output
+    img = read_exr(out)
+    kind = name.split("_")[0]
+    assert img.config["model"]["kind"] == kind and img.data.shape[:2] == (64, 64)
+    assert np.all(np.isfinite(img.data)) and img.data.max() > 0
+    scene = tmp_path / "street.exr"
+    assert invoke("scene", "street_lights_at_night", "--npix", 64, "--out", scene).exit_code == 0
+    rendered = tmp_path / "rendered.exr"
+    result = invoke("render", scene, "--model", EXAMPLES / f"{name}.toml", "--out", rendered)
+    assert result.exit_code == 0, result.output
+    assert read_exr(rendered).data.sum() == pytest.approx(read_exr(scene).data.sum(), rel=0.05)
+
+
 def test_psf_refuses_an_aliased_fresnel_phase(tmp_path):
     cfg = tmp_path / "aliased.toml"
     text = (EXAMPLES / "pupil_fresnel.toml").read_text().replace("aperture_npix = 512", "")
