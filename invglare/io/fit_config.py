@@ -664,6 +664,24 @@ def draw_starts(space, ranges: Mapping[int, tuple[float, float]], n: int, seed: 
     return starts
 
 
+def read_fit_section(
+    config: dict[str, Any], config_path: Path, out_dir: str | Path | None
+) -> tuple[str, Path]:
+    """The ``[fit]`` table: the fit's name (default the file's stem) and its report folder
+    (`out_dir` if given, else ``fit.out_dir`` relative to the config, else reports/NAME)."""
+    sec = Section(config.get("fit", {}), "fit")
+    name = sec.get("name", str, config_path.stem)
+    out_cfg = sec.get("out_dir", str, None)
+    sec.finish()
+    if not _NAME.match(name):
+        raise ConfigError(f"fit.name = {name!r} must be a plain name (letters, digits, _ - .)")
+    if out_dir is not None:
+        return name, Path(out_dir)
+    if out_cfg is not None:
+        return name, _resolve(config_path.parent, out_cfg)
+    return name, Path("reports") / name
+
+
 def load_fit(
     path: str | Path,
     *,
@@ -698,18 +716,7 @@ def load_fit(
     base = config_path.parent
     check_sections(config, SECTIONS, str(config_path))
 
-    fit_sec = Section(config.get("fit", {}), "fit")
-    name = fit_sec.get("name", str, config_path.stem)
-    out_cfg = fit_sec.get("out_dir", str, None)
-    fit_sec.finish()
-    if not _NAME.match(name):
-        raise ConfigError(f"fit.name = {name!r} must be a plain name (letters, digits, _ - .)")
-    if out_dir is not None:
-        out = Path(out_dir)
-    elif out_cfg is not None:
-        out = _resolve(base, out_cfg)
-    else:
-        out = Path("reports") / name
+    name, out = read_fit_section(config, config_path, out_dir)
 
     tsec = Section(config.get("target", {}), "target")
     target_file = tsec.get("file", str, required=True)

@@ -65,6 +65,7 @@ import numpy as np
 from invglare.aperture.eye import REGIONS
 from invglare.errors import ConfigError, InputDataError, PhysicsRangeError
 from invglare.io.config import Section, check_sections, load_toml
+from invglare.io.fit_config import read_fit_section
 from invglare.reference.cie_fit import (
     CieFitResult,
     CieFitSetup,
@@ -294,16 +295,7 @@ def load_reference_fit(
     check_sections(config, SECTIONS, str(config_path))
     base = config_path.parent
 
-    fsec = Section(config.get("fit", {}), "fit")
-    name = fsec.get("name", str, config_path.stem)
-    out = fsec.get("out_dir", str, None)
-    fsec.finish()
-    if out_dir is not None:
-        folder = Path(out_dir)
-    elif out is not None:
-        folder = base / out
-    else:
-        folder = Path("reports") / name
+    name, folder = read_fit_section(config, config_path, out_dir)
 
     setup = _read_setup(config, n_starts, max_steps)
 
