@@ -16,7 +16,6 @@ import numpy as np
 import pytest
 from helpers import central_difference, x64
 from scipy.integrate import quad
-from scipy.special import j1
 from scipy.stats import ncx2
 
 from invglare.errors import ConfigError, InputDataError, PhysicsRangeError
@@ -38,7 +37,6 @@ from invglare.models.veiling_series import (
     evaluate_direct,
     evaluate_separable,
     ghost_coefficients,
-    jinc,
     kappa,
     pixel_average_factors,
     profile_area,
@@ -73,17 +71,6 @@ def series_coefficients_fft(image: np.ndarray, n: int) -> SeriesCoefficients:
     c = 2 * (-pos.imag - neg_m.imag) * half
     d = 2 * (-pos.real + neg_m.real) * half
     return SeriesCoefficients(A=a, B=b, C=c, D=d)
-
-
-# ------------------------------------------------------------------------------ special
-
-
-def test_jinc_matches_scipy_to_1e9():
-    with x64():
-        x = np.concatenate([np.linspace(0, 60, 60001), np.geomspace(1e-6, 5e3, 4001)])
-        safe = np.where(x == 0, 1.0, x)
-        ref = np.where(x == 0, 1.0, 2 * j1(safe) / safe)
-        assert np.max(np.abs(np.asarray(jinc(x)) - ref)) < 1e-9  # measured 1.9e-11
 
 
 # ------------------------------------------------------------------------------ coefficients

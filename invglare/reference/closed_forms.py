@@ -31,6 +31,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Complex, Float
 
+from invglare.optics.bessel import bessel_j1, jinc
 from invglare.optics.sampling import (
     AngularGrid,
     check_positive,
@@ -58,116 +59,6 @@ def _as_float(x: ArrayLike) -> Array:
     if not jnp.issubdtype(arr.dtype, jnp.floating):
         arr = arr.astype(float)
     return arr
-
-
-# ------------------------------------------------------------------------------ Bessel J1
-
-# jax.scipy.special has no J0/J1 (its `bessel_jn` recurrence needs many iterations for
-# large arguments), so J1 is built from three pieces, each accurate to ~1e-15 in float64:
-#  * |x| < 2: the power series of 2 J1(x) / x (no cancellation there);
-#  * 2 <= |x| < 17: Bessel's integral J1(x) = 1/(2 pi) ∫ cos(t - x sin t) dt over a full
-#    period, by the trapezoid rule, which for a periodic analytic integrand is exact
-#    up to the aliased terms J_{N -+ 1}(x) < 1e-15 with N = 48 nodes;
-#  * |x| >= 17: Hankel's asymptotic expansion, whose smallest term is ~exp(-2x) < 1e-14
-#    relative at x = 17 and far smaller beyond.
-_SERIES_MAX = 2.0
-_ASYMPTOTIC_MIN = 17.0
-_N_NODES = 48
-_SERIES_TERMS = 14
-_HANKEL_TERMS = 20
-
-
-def _hankel_coefficients(nu: float, n: int) -> list[float]:
-    """a_k(nu) = prod_{j=1..k} (4 nu² - (2j - 1)²) / (k! 8^k), k = 0..n-1."""
-    coeffs, a = [], 1.0
-    for k in range(n):
-        coeffs.append(a)
-        a *= (4.0 * nu * nu - (2 * k + 1) ** 2) / ((k + 1) * 8.0)
-    return coeffs
-
-
-_HANKEL_J1 = _hankel_coefficients(1.0, _HANKEL_TERMS)
-
-
-def _jinc_series(x: Array) -> Array:
-    """2 J1(x) / x = sum_m (-1)^m (x/2)^(2m) / (m! (m+1)!)."""
-    q = -0.25 * x * x
-    term = jnp.ones_like(x)
-    total = term
-    for m in range(1, _SERIES_TERMS):
-        term = term * q / (m * (m + 1))
-        total = total + term
-    return total
-
-
-def _j1_trapezoid(x: Array) -> Array:
-    # The integrand is symmetric about t = pi, so half the nodes suffice.
-    n = _N_NODES
-    total = 0.5 * (jnp.cos(0.0 * x) + jnp.cos(math.pi + 0.0 * x))  # t = 0 and t = pi
-    for j in range(1, n // 2):
-        t = 2.0 * math.pi * j / n
-        total = total + jnp.cos(t - x * math.sin(t))
-    return total * (2.0 / n)
-
-
-def _j1_asymptotic(x: Array) -> Array:
-    inv = 1.0 / x
-    p = jnp.zeros_like(x)
-    q = jnp.zeros_like(x)
-    power = jnp.ones_like(x)
-    for k, a in enumerate(_HANKEL_J1):
-        sign = -1.0 if (k // 2) % 2 else 1.0
-        if k % 2 == 0:
-            p = p + sign * a * power
-        else:
-            q = q + sign * a * power
-        power = power * inv
-    chi = x - 0.75 * math.pi
-    return jnp.sqrt(2.0 / (math.pi * x)) * (p * jnp.cos(chi) - q * jnp.sin(chi))
-
-
-def bessel_j1(x: Float[ArrayLike, "*shape"]) -> Float[Array, "*shape"]:
-    """Bessel function of the first kind of order 1, in `jax.numpy` (differentiable).
-
-    Accurate to about 1e-15 absolute in float64 (and to float32 round-off in
-    float32) for all finite `x`; see the comments in the source for the method.
-
-    **Example:**
-
-    ```python
-    bessel_j1(jnp.array([0.0, 1.0, 3.8317]))   # [0, 0.44005, ~0]
-    ```
-    """
-    x = _as_float(x)
-    return 0.5 * x * jinc(x)
-
-
-def jinc(x: Float[ArrayLike, "*shape"]) -> Float[Array, "*shape"]:
-    """``2 J1(x) / x`` (1 at 0): the amplitude of the Airy pattern at ``x = pi D theta / lambda``.
-
-    **Example:**
-
-    ```python
-    jinc(0.0)   # 1.0
-    ```
-    """
-    return _jinc(_as_float(x))
-
-
-# Jitted so that eager callers compile one program rather than each of its ~100 operations.
-@jax.jit
-def _jinc(x: Array) -> Array:
-    x = jnp.abs(x)
-    small = x < _SERIES_MAX
-    large = x >= _ASYMPTOTIC_MIN
-    # Each branch gets an argument inside its own domain, so unused branches never
-    # produce inf/NaN that would leak into gradients through jnp.where.
-    x_series = jnp.where(small, x, 0.0)
-    x_trap = jnp.clip(x, _SERIES_MAX, _ASYMPTOTIC_MIN)
-    x_asym = jnp.where(large, x, _ASYMPTOTIC_MIN)
-    mid = 2.0 * _j1_trapezoid(x_trap) / x_trap
-    far = 2.0 * _j1_asymptotic(x_asym) / x_asym
-    return jnp.where(small, _jinc_series(x_series), jnp.where(large, far, mid))
 
 
 # ------------------------------------------------------------------------------ Airy
