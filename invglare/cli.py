@@ -131,7 +131,8 @@ def render(
     With --frames, a temporal model animates the scene (the eye's pupil, lens, vitreous
     and lids move frame by frame) into an .mp4, a .gif or a folder of linear EXR frames.
     A veiling-glare model (lens ghosts) gives each of the --max-bright brightest pixels
-    above --threshold the ghosts of its own direction (--mode does not apply).
+    above --threshold the ghosts of its own direction (--mode does not apply); so does a
+    Kakimoto model with masking = 'position' with its glare PSF (--mode billboard).
     """
     from invglare.commands.render import run_render
 

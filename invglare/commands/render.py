@@ -38,14 +38,13 @@ def psf_at_scale(model, scale_deg: float, max_npix: int):
     import jax
 
     from invglare.render.convolve import resample_psf
+    from invglare.render.position_glare import psf_npix_at_scale
 
     psf = jax.jit(lambda m: m())(model)
     own_scale = float(model.propagator.output.pixel_scale_deg)
     if math.isclose(own_scale, scale_deg, rel_tol=1e-6):
         return psf
-    field_deg = psf.shape[0] * own_scale
-    npix = min(max_npix, max(3, math.ceil(field_deg / scale_deg)))
-    npix += 1 - npix % 2  # odd: the centre pixel stays centred
+    npix = psf_npix_at_scale(psf.shape[0], own_scale, scale_deg, max_npix)
     return resample_psf(psf, own_scale, scale_deg, npix)
 
 
@@ -65,11 +64,7 @@ def run_render(
     import jax.numpy as jnp
 
     from invglare.io.exr import read_exr
-    from invglare.render import (
-        add_billboards,
-        convolve_psf,
-        validate_scene,
-    )
+    from invglare.render import convolve_psf, replace_with_billboards, validate_scene
 
     if frames is not None or fps is not None:
         run_animation(scene, model_path, out, frames, fps, pixel_scale_deg)
@@ -100,7 +95,21 @@ def run_render(
         result = render_ghosts(model, image, bright, scale)
         _write(out, np.asarray(result), scale, model, "ghosts", scene, tonemap_name, exposure)
         return
-    psf = psf_at_scale(model, scale, max_npix=2 * max(image.shape[:2]) + 1)
+    max_npix = 2 * max(image.shape[:2]) + 1
+    if getattr(model, "masking", None) == "position":
+        # Eq. 3: the lashes move with the light, so each light gets its own PSF.
+        if mode != "billboard":
+            raise ConfigError(
+                f"{model_path} has masking = 'position': each light gets the PSF of its own "
+                "direction, which a convolution cannot do; render it with --mode billboard"
+            )
+        from invglare.render.position_glare import render_position_glare
+
+        bright = _bright(jnp.asarray(image), threshold, max_bright)
+        result = render_position_glare(model, image, bright, scale, max_npix)
+        _write(out, np.asarray(result), scale, model, "billboard", scene, tonemap_name, exposure)
+        return
+    psf = psf_at_scale(model, scale, max_npix=max_npix)
     if image.ndim == 3 and psf.ndim == 2:
         psf = jnp.repeat(psf[..., None], image.shape[2], axis=-1)
     if image.ndim == 2 and psf.ndim == 3:
@@ -109,16 +118,9 @@ def run_render(
     if mode == "convolve":
         result = convolve_psf(image, psf)
     else:
-        bright = _bright(image, threshold, max_bright)
         # Listed bright pixels are replaced by their spread light, so energy is conserved;
         # bright pixels beyond max_bright stay as they are.
-        listed = (
-            jnp.zeros(image.shape[:2])
-            .at[bright.rows, bright.cols]
-            .max(bright.valid.astype(image.dtype))
-        )
-        keep = 1.0 - (listed if image.ndim == 2 else listed[..., None])
-        result = add_billboards(image * keep, bright, psf)
+        result = replace_with_billboards(image, _bright(image, threshold, max_bright), psf)
     _write(out, np.asarray(result), scale, model, mode, scene, tonemap_name, exposure)
     log.info("PSF %dpx at %.4g deg/px", psf.shape[0], scale)
 

@@ -3,7 +3,8 @@
 A glare render is: find the bright pixels of a linear HDR image (`bright_pixels`,
 `bright_pixel_list`), spread them with the glare PSF (`convolve_psf` over the
 whole frame, or `billboard_glare` stamps at a list of pixels, optionally with a
-PSF per position), add the result to the image and tone-map it for display
+PSF per position: `position_glare` gives each light of a frame the Kakimoto PSF of its
+own direction), add the result to the image and tone-map it for display
 (`tonemap` and `TONEMAPS`). `scenes` provides small procedural HDR scenes in
 cd/m^2 so that all of this runs with nothing downloaded. `temporal_frames` renders the
 temporal glare model's animations (`render_frame`, `render_sequence`: a per-frame PSF
@@ -12,15 +13,19 @@ convolved with an HDR frame and tone-mapped, one `lax.scan` per sequence).
 
 from invglare.render.billboard import add_billboards as add_billboards
 from invglare.render.billboard import billboard_glare as billboard_glare
+from invglare.render.billboard import replace_with_billboards as replace_with_billboards
 from invglare.render.bright import REC709_WEIGHTS as REC709_WEIGHTS
 from invglare.render.bright import BrightPixels as BrightPixels
 from invglare.render.bright import bright_pixel_list as bright_pixel_list
 from invglare.render.bright import bright_pixels as bright_pixels
+from invglare.render.bright import light_angles_deg as light_angles_deg
 from invglare.render.bright import luminance as luminance
 from invglare.render.convolve import check_compatible_scales as check_compatible_scales
 from invglare.render.convolve import convolve_psf as convolve_psf
 from invglare.render.convolve import fft_size as fft_size
 from invglare.render.convolve import resample_psf as resample_psf
+from invglare.render.position_glare import position_psf_bank as position_psf_bank
+from invglare.render.position_glare import render_position_glare as render_position_glare
 from invglare.render.scenes import SCENES as SCENES
 from invglare.render.scenes import candle as candle
 from invglare.render.scenes import street_lights_at_night as street_lights_at_night

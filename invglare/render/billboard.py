@@ -23,7 +23,7 @@ from jaxtyping import Array, ArrayLike, Float, Int
 from invglare.errors import InputDataError
 from invglare.render.bright import BrightPixels
 
-__all__ = ["add_billboards", "billboard_glare"]
+__all__ = ["add_billboards", "billboard_glare", "replace_with_billboards"]
 
 
 def _bank_channels_first(psf: Array, per_position: bool) -> Array:
@@ -150,3 +150,32 @@ def add_billboards(
     if image.ndim == 2 and glare.ndim == 3:
         image = image[..., None]
     return image + glare
+
+
+def replace_with_billboards(
+    image: Float[ArrayLike, "H W *c"],
+    bright: BrightPixels,
+    psf: Float[ArrayLike, "*k h w *c"],
+    *,
+    psf_index: Int[ArrayLike, " n"] | None = None,
+) -> Float[Array, "H W *c"]:
+    """`image` with each listed bright pixel replaced by its billboard (energy kept).
+
+    The valid pixels of `bright` are taken out of the image and put back spread by
+    the PSF (which sums to 1: the central spot returns most of the light to its
+    pixel). Bright pixels that did not make the list stay as they are.
+
+    **Example:**
+
+    ```python
+    out = replace_with_billboards(scene, bright_pixel_list(scene, 1e3, 64), psf_rgb)
+    ```
+    """
+    image = jnp.asarray(image)
+    listed = (
+        jnp.zeros(image.shape[:2], image.dtype)
+        .at[jnp.asarray(bright.rows), jnp.asarray(bright.cols)]
+        .max(jnp.asarray(bright.valid).astype(image.dtype))
+    )
+    keep = 1.0 - (listed if image.ndim == 2 else listed[..., None])
+    return add_billboards(image * keep, bright, psf, psf_index=psf_index)

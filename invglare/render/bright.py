@@ -27,7 +27,14 @@ from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
 from invglare.errors import InputDataError, PhysicsRangeError
 
-__all__ = ["REC709_WEIGHTS", "BrightPixels", "bright_pixel_list", "bright_pixels", "luminance"]
+__all__ = [
+    "REC709_WEIGHTS",
+    "BrightPixels",
+    "bright_pixel_list",
+    "bright_pixels",
+    "light_angles_deg",
+    "luminance",
+]
 
 #: Rec. 709 / sRGB luminance weights of linear R, G, B.
 REC709_WEIGHTS = (0.2126, 0.7152, 0.0722)
@@ -193,3 +200,24 @@ def bright_pixel_list(
     values = jnp.where(mask, values, jnp.zeros((), values.dtype))
     n_above = jnp.sum(lum >= jnp.asarray(threshold, dtype=image.dtype), dtype=jnp.int32)
     return BrightPixels(rows, cols, values, valid, n_above)
+
+
+def light_angles_deg(
+    bright: BrightPixels, shape: tuple[int, int], pixel_scale_deg: float
+) -> Float[Array, "n 2"]:
+    """``(n, 2)`` (x, y) angles (deg) of the listed pixels from the centre pixel.
+
+    The centre pixel ``(H // 2, W // 2)`` is the optical axis; x grows with the
+    column and y with the row, as the coordinates of `invglare.optics.sampling`
+    (so a model's PSF for the light at that angle matches the frame's orientation).
+
+    **Example:**
+
+    ```python
+    angles = light_angles_deg(bright_pixel_list(scene, 1e3, 8), scene.shape[:2], 0.05)
+    ```
+    """
+    h, w = shape
+    x = (jnp.asarray(bright.cols) - w // 2).astype(jnp.float32) * pixel_scale_deg
+    y = (jnp.asarray(bright.rows) - h // 2).astype(jnp.float32) * pixel_scale_deg
+    return jnp.stack([x, y], axis=-1)

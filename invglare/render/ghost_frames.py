@@ -20,15 +20,7 @@ from jaxtyping import Array, ArrayLike, Float
 from invglare.errors import InputDataError
 from invglare.models.veiling import VeilingGlare
 from invglare.models.veiling_ghosts import check_light_angle
-from invglare.render.bright import BrightPixels
-
-
-def light_angles_deg(bright: BrightPixels, shape: tuple[int, int], pixel_scale_deg: float) -> Array:
-    """``(K, 2)`` (x, y) angles of the listed pixels from the centre pixel ``(H // 2, W // 2)``."""
-    h, w = shape
-    x = (bright.cols - w // 2).astype(jnp.float32) * pixel_scale_deg
-    y = (bright.rows - h // 2).astype(jnp.float32) * pixel_scale_deg
-    return jnp.stack([x, y], axis=-1)
+from invglare.render.bright import BrightPixels, light_angles_deg
 
 
 def render_ghosts(
