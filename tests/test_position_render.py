@@ -130,3 +130,36 @@ def test_render_command_renders_position_masking_with_billboards_only(tmp_path):
     refused = runner.invoke(app, args)  # the default mode is convolve
     assert refused.exit_code == 2
     assert "masking = 'position'" in refused.output and "--mode billboard" in refused.output
+
+
+def test_render_png_with_the_kakimoto_tone_map_exposes_for_the_glare_layer(tmp_path):
+    """--tonemap kakimoto: the brightest light's glare plateau at white, its spot saturated
+    (Kakimoto sec. 3.3), the PNG equal to the tone map of the linear render within 1/255."""
+    from PIL import Image
+
+    from invglare.commands.render import psf_at_scale
+    from invglare.render import kakimoto_scene_scale, kakimoto_tonemap
+
+    config = tmp_path / "eye_fixed.toml"
+    config.write_text(_eye_toml("fixed"))
+    scene = tmp_path / "lights.exr"
+    write_exr(scene, _frame(), pixel_scale_deg=SCALE)
+    runner = CliRunner()
+    common = ["render", str(scene), "--model", str(config), "--mode", "billboard"]
+    assert runner.invoke(app, [*common, "--out", str(tmp_path / "lin.exr")]).exit_code == 0
+    result = runner.invoke(
+        app, [*common, "--tonemap", "kakimoto", "--out", str(tmp_path / "k.png")]
+    )
+    assert result.exit_code == 0, result.output
+    png = np.asarray(Image.open(tmp_path / "k.png"), dtype=float) / 255.0
+    linear = read_exr(tmp_path / "lin.exr").data
+    model = _eye("fixed")
+    psf = psf_at_scale(model, SCALE, 99)
+    radius = float(model.central_spot_radius_px()) * 0.003 / SCALE
+    scale = kakimoto_scene_scale(psf, radius, 900.0)
+    np.testing.assert_allclose(png, kakimoto_tonemap(linear, scale), atol=1 / 255 + 1e-6)
+    # Not the exposure of the spot: the brightest light's surroundings are not black.
+    row, col = 5, 8
+    ring = png[row - 2 : row + 3, col - 2 : col + 3].copy()
+    ring[1:4, 1:4] = np.nan
+    assert png[row, col] == 1.0 and np.nanmax(ring) > 0.5

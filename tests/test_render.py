@@ -31,6 +31,7 @@ from invglare.render import (
     fft_size,
     kakimoto_glare_image,
     kakimoto_glare_layers,
+    kakimoto_scene_scale,
     kakimoto_sigmoid,
     kakimoto_sigmoid_inverse,
     kakimoto_tonemap,
@@ -316,6 +317,24 @@ def test_kakimoto_glare_layers_split_and_display():
         assert img.min() >= 32 / 255 - 1e-6
     with pytest.raises(PhysicsRangeError, match="spot_radius_px"):
         kakimoto_glare_layers(psf, 40.0)
+
+
+def test_kakimoto_scene_scale_shows_each_light_as_its_glare_image():
+    """A light of value v rendered with a PSF and tone-mapped at the scene scale of the
+    brightest light v_max is kakimoto_glare_image(psf) at input scale v / v_max (rtol 1e-5)."""
+    psf = (gaussian_psf(33, 1.0) + 1e-4 * gaussian_psf(33, 8.0)).astype(np.float32)
+    bright, dim = 5e4, 5e3
+    scale = kakimoto_scene_scale(psf, 3.0, bright)
+    np.testing.assert_allclose(
+        kakimoto_tonemap(bright * psf, scale), kakimoto_glare_image(psf, 3.0), rtol=1e-5
+    )
+    # The dimmer light: its glare plateau sits a factor 10 lower on the curve's input.
+    layers = kakimoto_glare_layers(psf, 3.0)
+    white = kakimoto_sigmoid_inverse(255.0)
+    expected = display_to_unit(kakimoto_sigmoid(psf / layers.clip_level * white * (dim / bright)))
+    np.testing.assert_allclose(kakimoto_tonemap(dim * psf, scale), expected, rtol=1e-5)
+    with pytest.raises(PhysicsRangeError, match="light_value"):
+        kakimoto_scene_scale(psf, 3.0, 0.0)
 
 
 def test_reinhard_global_values_rel_1e6(rng):

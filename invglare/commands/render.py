@@ -93,7 +93,8 @@ def run_render(
 
         bright = _bright(jnp.asarray(image), threshold, max_bright)
         result = render_ghosts(model, image, bright, scale)
-        _write(out, np.asarray(result), scale, model, "ghosts", scene, tonemap_name, exposure)
+        params = _tonemap_params(tonemap_name, exposure)
+        _write(out, np.asarray(result), scale, model, "ghosts", scene, tonemap_name, params)
         return
     max_npix = 2 * max(image.shape[:2]) + 1
     if getattr(model, "masking", None) == "position":
@@ -107,9 +108,12 @@ def run_render(
 
         bright = _bright(jnp.asarray(image), threshold, max_bright)
         result = render_position_glare(model, image, bright, scale, max_npix)
-        _write(out, np.asarray(result), scale, model, "billboard", scene, tonemap_name, exposure)
+        # The on-axis PSF sets the exposure of the kakimoto tone map.
+        params = _tonemap_params(tonemap_name, exposure, model, image, scale, max_npix)
+        _write(out, np.asarray(result), scale, model, "billboard", scene, tonemap_name, params)
         return
     psf = psf_at_scale(model, scale, max_npix=max_npix)
+    params = _tonemap_params(tonemap_name, exposure, model, image, scale, max_npix, psf)
     if image.ndim == 3 and psf.ndim == 2:
         psf = jnp.repeat(psf[..., None], image.shape[2], axis=-1)
     if image.ndim == 2 and psf.ndim == 3:
@@ -121,11 +125,42 @@ def run_render(
         # Listed bright pixels are replaced by their spread light, so energy is conserved;
         # bright pixels beyond max_bright stay as they are.
         result = replace_with_billboards(image, _bright(image, threshold, max_bright), psf)
-    _write(out, np.asarray(result), scale, model, mode, scene, tonemap_name, exposure)
+    _write(out, np.asarray(result), scale, model, mode, scene, tonemap_name, params)
     log.info("PSF %dpx at %.4g deg/px", psf.shape[0], scale)
 
 
-def _write(out: Path, result, scale: float, model, mode: str, scene: Path, tonemap_name, exposure):
+def _tonemap_params(
+    name: str, exposure: float, model=None, image=None, scale_deg=None, max_npix=None, psf=None
+) -> dict:
+    """Keyword arguments of the PNG tone map.
+
+    For ``kakimoto`` with an eye or camera model, the central spot is its own layer
+    (Kakimoto sec. 3.3): the exposure puts the brightest light's glare plateau at
+    display white (`kakimoto_scene_scale`) and the spot saturates above it.
+    """
+    if name in ("gamma", "srgb"):
+        return {"exposure": exposure}
+    if name != "kakimoto" or not hasattr(model, "central_spot_radius_px"):
+        return {}
+    from invglare.render import kakimoto_scene_scale
+
+    if psf is None:
+        psf = psf_at_scale(model, scale_deg, max_npix)
+    own_scale = float(model.propagator.output.pixel_scale_deg)
+    radius = float(model.central_spot_radius_px()) * own_scale / scale_deg
+    light = float(np.max(image))
+    tonemap_scale = float(kakimoto_scene_scale(psf, radius, light))
+    log.info(
+        "kakimoto tone map: spot radius %.3g px; the glare of the brightest light (%.4g) "
+        "reaches white (scale %.4g)",
+        radius,
+        light,
+        tonemap_scale,
+    )
+    return {"scale": tonemap_scale}
+
+
+def _write(out: Path, result, scale: float, model, mode: str, scene: Path, tonemap_name, params):
     """A linear EXR (model config in the header) or a tone-mapped PNG."""
     from invglare.io.exr import write_exr
     from invglare.io.images import write_png
@@ -141,7 +176,6 @@ def _write(out: Path, result, scale: float, model, mode: str, scene: Path, tonem
             attrs={"renderMode": mode, "scene": str(scene)},
         )
     else:
-        params = {"exposure": exposure} if tonemap_name in ("gamma", "srgb") else {}
         write_png(out, np.asarray(tonemap(result, tonemap_name, **params)))
     log.info("wrote %s (%s)", out, mode)
 

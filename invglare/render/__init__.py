@@ -41,6 +41,7 @@ from invglare.render.tonemap import display_to_unit as display_to_unit
 from invglare.render.tonemap import exposure_gamma as exposure_gamma
 from invglare.render.tonemap import kakimoto_glare_image as kakimoto_glare_image
 from invglare.render.tonemap import kakimoto_glare_layers as kakimoto_glare_layers
+from invglare.render.tonemap import kakimoto_scene_scale as kakimoto_scene_scale
 from invglare.render.tonemap import kakimoto_sigmoid as kakimoto_sigmoid
 from invglare.render.tonemap import kakimoto_sigmoid_inverse as kakimoto_sigmoid_inverse
 from invglare.render.tonemap import kakimoto_tonemap as kakimoto_tonemap

@@ -40,6 +40,7 @@ __all__ = [
     "exposure_gamma",
     "kakimoto_glare_image",
     "kakimoto_glare_layers",
+    "kakimoto_scene_scale",
     "kakimoto_sigmoid",
     "kakimoto_sigmoid_inverse",
     "kakimoto_tonemap",
@@ -264,6 +265,44 @@ def kakimoto_glare_image(
     tiny = jnp.finfo(layers.glare.dtype).tiny
     x = layers.glare / jnp.maximum(layers.clip_level, tiny) * white
     return display_to_unit(kakimoto_sigmoid(x, D, k, g))
+
+
+def kakimoto_scene_scale(
+    psf: Float[ArrayLike, "h w *c"],
+    spot_radius_px: float,
+    light_value: float | Float[ArrayLike, ""],
+    D: float | Float[ArrayLike, ""] = 640.0,
+    k: float | Float[ArrayLike, ""] = 20.0,
+    g: float | Float[ArrayLike, ""] = 0.465,
+) -> Float[Array, ""]:
+    """The `scale` of `kakimoto_tonemap` that treats the central spot as its own layer.
+
+    A scene rendered with a glare PSF holds, around each light of value ``v``,
+    ``v * psf``: a spot orders of magnitude brighter than the diffraction pattern.
+    Exposing for the spot would leave the glare black, so, as for a single PSF in
+    `kakimoto_glare_image`, the exposure is set by the glare layer: the plateau of
+    the brightest light's glare, ``light_value * clip_level``, lands on display
+    white, and the spot above it saturates (it composes on top as white). A light
+    of value ``v`` then shows ``kakimoto_glare_image(psf)`` scaled by ``v / light_value``.
+
+    **Arguments:**
+
+    - `psf`: the PSF at the scene's pixel scale, `(h, w)` or `(h, w, C)`.
+    - `spot_radius_px`: the spot's radius in scene pixels (see `kakimoto_glare_layers`).
+    - `light_value`: the brightest light's value in the scene's units (> 0).
+    - `D`, `k`, `g`: the sigmoid's parameters, as for `kakimoto_sigmoid`.
+
+    **Example:**
+
+    ```python
+    scale = kakimoto_scene_scale(psf, 1.5, float(scene.max()))
+    png = kakimoto_tonemap(rendered, scale)
+    ```
+    """
+    check_positive("light_value", light_value)
+    clip_level = kakimoto_glare_layers(psf, spot_radius_px).clip_level
+    white = kakimoto_sigmoid_inverse(DISPLAY_MAX, D, k, g).astype(clip_level.dtype)
+    return white / (jnp.maximum(clip_level, jnp.finfo(clip_level.dtype).tiny) * light_value)
 
 
 # --------------------------------------------------------------------------- Reinhard
