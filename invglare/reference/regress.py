@@ -202,7 +202,15 @@ _EYE_INNER = {
     "pupil": {"diameter_mm": 3.0, "ellipticity": 0.05, "rotation_deg": 20.0},
     "lids": _LIDS,
     "particles": [{"region": "cornea", "count": 60.0, "n_max": 64, "radius_mean_mm": 0.02}],
-    "gratings": {"count": 12.0, "n_max": 12, "spacing_mm": 0.08, "line_thickness_mm": 0.03},
+    # The annulus lies inside the 3 mm pupil (the default 2-3.5 mm one would be hidden).
+    "gratings": {
+        "count": 12.0,
+        "n_max": 12,
+        "spacing_mm": 0.08,
+        "line_thickness_mm": 0.03,
+        "inner_radius_mm": 0.6,
+        "outer_radius_mm": 1.4,
+    },
 }
 _EYE_OBSTACLES = {
     "seed": 5,
