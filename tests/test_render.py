@@ -475,6 +475,13 @@ def test_incompatible_scales_and_unknown_names_raise():
         check_compatible_scales(None, 0.01)
     with pytest.raises(PhysicsRangeError, match=r"-0\.01"):
         check_compatible_scales(-0.01, 0.01)
+    # convolve_psf checks the scales it is given before it convolves.
+    image, psf = np.ones((6, 6)), np.ones((3, 3)) / 9
+    with pytest.raises(InputDataError, match=r"0\.01 deg/px.*0\.02 deg/px"):
+        convolve_psf(image, psf, pixel_scales_deg=(0.02, 0.01))
+    np.testing.assert_allclose(
+        convolve_psf(image, psf, pixel_scales_deg=(0.02, 0.02)), convolve_psf(image, psf)
+    )
     with pytest.raises(ConfigError, match=r"'filmic'.*kakimoto, reinhard, gamma, srgb"):
         tonemap(np.ones((2, 2)), "filmic")
     with pytest.raises(ConfigError, match=r"'gama'.*exposure, gamma"):

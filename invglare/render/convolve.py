@@ -86,6 +86,7 @@ def convolve_psf(
     psf: Float[ArrayLike, "h w *c"],
     *,
     pad: bool = True,
+    pixel_scales_deg: tuple[float | None, float | None] | None = None,
 ) -> Float[Array, "H W *c"]:
     """Convolve an HDR image with a PSF by real FFTs: every pixel spreads its light.
 
@@ -104,6 +105,9 @@ def convolve_psf(
       one per channel; energy per pixel at the image's pixel scale, centre at
       `(h // 2, w // 2)`. An `(h, w, C)` PSF on an `(H, W)` image gives `C` channels.
     - `pad`: avoid wrap-around (default) or not.
+    - `pixel_scales_deg`: optional `(image, PSF)` degrees per pixel (e.g. their EXR
+      headers' `pixelScaleDeg`): checked with `check_compatible_scales` first, so a
+      PSF at another scale is refused instead of silently mis-sized.
 
     **Returns:** `(H, W)` if both inputs are 2-D, else `(H, W, C)`; the dtype
     of `image` and `psf` promoted together.
@@ -114,6 +118,8 @@ def convolve_psf(
     glare = convolve_psf(bright_pixels(scene, 1e3), psf_rgb)   # (H, W, 3)
     ```
     """
+    if pixel_scales_deg is not None:
+        check_compatible_scales(*pixel_scales_deg)
     image, psf = _as_float(image), _as_float(psf)
     dtype = jnp.result_type(image.dtype, psf.dtype)
     img = _channels_first(image.astype(dtype), "image")
