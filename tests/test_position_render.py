@@ -11,6 +11,7 @@ import pytest
 from typer.testing import CliRunner
 
 from invglare.cli import app
+from invglare.errors import InputDataError, PhysicsRangeError
 from invglare.io.config import load_toml
 from invglare.io.exr import read_exr, write_exr
 from invglare.io.model_config import build_model
@@ -91,6 +92,10 @@ def test_each_light_gets_the_psf_of_its_own_direction():
         np.testing.assert_allclose(bank[k], one, rtol=1e-5, atol=1e-6 * float(one.max()))
         # Resampling to the frame's coarser pixels keeps the PSF's energy.
         assert bank[k].sum() == pytest.approx(float(psf.sum()), rel=1e-5)
+    with pytest.raises(PhysicsRangeError, match="pixel_scale_deg"):
+        position_psf_bank(model, angles, 0.0, npix)
+    with pytest.raises(InputDataError, match=r"\(K, 2\)"):
+        position_psf_bank(model, angles[:, 0], SCALE, npix)
     # Lights 0.3 deg apart see the lashes shifted by 8 mm * tan(0.3 deg) = 0.04 mm.
     assert np.abs(bank[0] - bank[1]).max() > 1e-3 * bank[0].max()
 

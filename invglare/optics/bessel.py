@@ -21,7 +21,7 @@ from __future__ import annotations
 
 import functools
 import math
-from decimal import Decimal, getcontext
+from decimal import Decimal, localcontext
 
 import jax
 import jax.numpy as jnp
@@ -85,16 +85,17 @@ def _half_pi_split(bits: int, pieces: int) -> list[float]:
 
     Products ``k * piece`` are then exact while ``k < 2^(mantissa - bits)``.
     """
-    getcontext().prec = 60
-    rest = Decimal("1.570796326794896619231321691639751442098584699687552910487")
     out = []
-    for _ in range(pieces):
-        exponent = math.floor(math.log2(abs(float(rest))))
-        scale = Decimal(2) ** (bits - 1 - exponent)
-        piece = (rest * scale).to_integral_value(rounding="ROUND_HALF_EVEN") / scale
-        out.append(float(piece))
-        rest -= piece
-    out.append(float(rest))
+    with localcontext() as context:  # 60 digits, without touching the caller's context
+        context.prec = 60
+        rest = Decimal("1.570796326794896619231321691639751442098584699687552910487")
+        for _ in range(pieces):
+            exponent = math.floor(math.log2(abs(float(rest))))
+            scale = Decimal(2) ** (bits - 1 - exponent)
+            piece = (rest * scale).to_integral_value(rounding="ROUND_HALF_EVEN") / scale
+            out.append(float(piece))
+            rest -= piece
+        out.append(float(rest))
     return out
 
 

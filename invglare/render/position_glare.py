@@ -27,6 +27,7 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
 from invglare.errors import InputDataError
+from invglare.optics.sampling import check_positive
 from invglare.render.billboard import replace_with_billboards
 from invglare.render.bright import BrightPixels, light_angles_deg
 from invglare.render.convolve import resample_psf
@@ -90,6 +91,7 @@ def position_psf_bank(
         raise InputDataError(f"light_angles_deg must have shape (K, 2); got {angles.shape}")
     if angles.shape[0] == 0:
         raise InputDataError("light_angles_deg is empty: there is no light to give glare")
+    check_positive("pixel_scale_deg", pixel_scale_deg, "deg")
     own_scale = float(model.propagator.output.pixel_scale_deg)
     batch = max(1, min(int(batch_size), angles.shape[0]))
     scales = (own_scale, float(pixel_scale_deg), int(npix))
