@@ -34,6 +34,7 @@ from invglare.models.veiling_series import (
     SeriesCoefficients,
     aggregate_coefficients,
     boxcar_coefficients,
+    default_chunk,
     evaluate_direct,
     evaluate_separable,
     ghost_coefficients,
@@ -242,6 +243,28 @@ def test_aggregation_equals_sum_of_individual_images(profile):
             for i in range(ghosts.n_ghosts)
         )
         np.testing.assert_allclose(total, singles, rtol=0, atol=1e-13 * np.abs(total).max())
+
+
+def test_default_chunks_and_padded_steps_give_the_same_sums():
+    """Below 16 ghosts one per step, else 16 (fewer when a step would pass ~4M
+    evaluations); 20 ghosts in two padded steps of 16 equal one per step (1e-13)."""
+    assert default_chunk(256, "disk", n_ghosts=10) == 1
+    assert default_chunk(256, "disk", n_ghosts=1000) == 16
+    assert default_chunk(256, "cosine", 48, n_ghosts=1000) == 1  # 257^2 x 48 > 4M / 16
+    with x64():
+        rng = np.random.default_rng(3)
+        k = 20
+        args = (
+            jnp.asarray(rng.uniform(0.1, 1.0, k)),
+            jnp.asarray(rng.uniform(0.2, 2.0, k)),
+            jnp.asarray(rng.uniform(0.0, 0.1, k)),
+            jnp.asarray(rng.uniform(-2.0, 2.0, (k, 2))),
+        )
+        steps = aggregate_coefficients("disk", *args, 20, 10.0)
+        single = aggregate_coefficients("disk", *args, 20, 10.0, chunk=1)
+        for name in "ABCD":
+            a, b = getattr(steps, name), getattr(single, name)
+            np.testing.assert_allclose(a, b, rtol=0, atol=1e-13 * float(np.abs(b).max()))
 
 
 def test_separable_evaluation_equals_direct_double_sum():

@@ -403,12 +403,18 @@ def translate_coefficients(
     )
 
 
-def default_chunk(n_harmonics: int, profile: str, quadrature_nodes: int = 48) -> int:
-    """Ghosts per aggregation step: 16, fewer where that would pass ~4M evaluations.
+def default_chunk(
+    n_harmonics: int, profile: str, quadrature_nodes: int = 48, n_ghosts: int | None = None
+) -> int:
+    """Ghosts per aggregation step: 16 (fewer past ~4M evaluations), or 1 below 16 ghosts.
 
-    Measured at K = 1000: 16 ghosts a step ran 2-6x faster than 1 to 12 at N = 64
-    and 2x faster than 1 at N = 256, and 32 or 64 were no faster.
+    Measured on 2 CPU cores (float32), one aggregation: 16 ghosts a step against 1 was
+    2x faster for 100 and 1000 ghosts at N = 64 and 256, and 32 no better; but a step
+    of 2 to 15 ghosts runs slowly on XLA's CPU code (10 ghosts at N = 256: 16 ms in
+    one step, 4.9 ms in steps of 1), so fewer than 16 ghosts go one at a time.
     """
+    if n_ghosts is not None and n_ghosts < 16:
+        return 1
     per_ghost = (n_harmonics + 1) ** 2 * (quadrature_nodes if profile == "cosine" else 1)
     return max(1, min(16, 4_000_000 // per_ghost))
 
@@ -451,7 +457,8 @@ def aggregate_coefficients(
             "ghost arrays must be intensity (K,), radius (K,), softness (K,), position (K, 2); "
             f"got {intensity.shape}, {radius.shape}, {softness.shape}, {position.shape}"
         )
-    chunk = default_chunk(n, profile, quadrature_nodes) if chunk is None else int(chunk)
+    if chunk is None:
+        chunk = default_chunk(n, profile, quadrature_nodes, k)
     chunk = max(1, min(chunk, k)) if k else 1
     n_chunks = max(1, -(-k // chunk))
     pad = n_chunks * chunk - k
