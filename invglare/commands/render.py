@@ -93,7 +93,7 @@ def run_render(
 
         bright = _bright(jnp.asarray(image), threshold, max_bright)
         result = render_ghosts(model, image, bright, scale)
-        params = _tonemap_params(tonemap_name, exposure)
+        params = _tonemap_params(out, tonemap_name, exposure)
         _write(out, np.asarray(result), scale, model, "ghosts", scene, tonemap_name, params)
         return
     max_npix = 2 * max(image.shape[:2]) + 1
@@ -109,11 +109,11 @@ def run_render(
         bright = _bright(jnp.asarray(image), threshold, max_bright)
         result = render_position_glare(model, image, bright, scale, max_npix)
         # The on-axis PSF sets the exposure of the kakimoto tone map.
-        params = _tonemap_params(tonemap_name, exposure, model, image, scale, max_npix)
+        params = _tonemap_params(out, tonemap_name, exposure, model, image, scale, max_npix)
         _write(out, np.asarray(result), scale, model, "billboard", scene, tonemap_name, params)
         return
     psf = psf_at_scale(model, scale, max_npix=max_npix)
-    params = _tonemap_params(tonemap_name, exposure, model, image, scale, max_npix, psf)
+    params = _tonemap_params(out, tonemap_name, exposure, model, image, scale, max_npix, psf)
     if image.ndim == 3 and psf.ndim == 2:
         psf = jnp.repeat(psf[..., None], image.shape[2], axis=-1)
     if image.ndim == 2 and psf.ndim == 3:
@@ -130,14 +130,23 @@ def run_render(
 
 
 def _tonemap_params(
-    name: str, exposure: float, model=None, image=None, scale_deg=None, max_npix=None, psf=None
+    out: Path,
+    name: str,
+    exposure: float,
+    model=None,
+    image=None,
+    scale_deg=None,
+    max_npix=None,
+    psf=None,
 ) -> dict:
-    """Keyword arguments of the PNG tone map.
+    """Keyword arguments of the PNG tone map (none for an EXR, which stays linear).
 
     For ``kakimoto`` with an eye or camera model, the central spot is its own layer
     (Kakimoto sec. 3.3): the exposure puts the brightest light's glare plateau at
     display white (`kakimoto_scene_scale`) and the spot saturates above it.
     """
+    if out.suffix.lower() != ".png":
+        return {}
     if name in ("gamma", "srgb"):
         return {"exposure": exposure}
     if name != "kakimoto" or not hasattr(model, "central_spot_radius_px"):
