@@ -135,9 +135,8 @@ def add_billboards(
 
     The bright pixels themselves stay in the image: with a PSF that sums to 1
     this adds each source's energy a second time, spread as glare. To
-    redistribute instead, remove them first (``image - bright_pixels(image, t)``)
-    or use a PSF whose central spot has been taken out
-    (`invglare.render.kakimoto_glare_layers`).
+    redistribute instead, use `replace_with_billboards`, or a PSF whose central
+    spot has been taken out (`invglare.render.kakimoto_glare_layers`).
 
     **Example:**
 
