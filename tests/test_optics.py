@@ -10,7 +10,7 @@ from helpers import assert_grad_matches_fd, x64
 from scipy.special import fresnel
 
 from invglare.errors import PhysicsRangeError
-from invglare.optics.fourier import centred_fft2, crop_centred, mft2, pad_centred
+from invglare.optics.fourier import centred_fft2, crop_centred, materialise, mft2, pad_centred
 from invglare.optics.fraunhofer import (
     fraunhofer_fft,
     fraunhofer_mft,
@@ -311,6 +311,29 @@ def test_jit_and_vmap_match_eager_and_loop():
 
 
 # ---------------------------------------------------------------- sampling and units
+
+
+def test_materialise_is_the_identity_and_a_fusion_boundary():
+    """Values, derivatives and batching pass through unchanged; the compiled program keeps
+    the conditional that stops XLA fusing the producer into the padded FFT's input (if a
+    future XLA folds it away this fails, and `invglare bench psf_mono` would show why)."""
+    x = jnp.linspace(-1.0, 2.0, 12).reshape(3, 4)
+
+    def f(s):
+        return jnp.sum(materialise(jnp.sin(s * x)) ** 2)
+
+    def g(s):
+        return jnp.sum(jnp.sin(s * x) ** 2)
+
+    s0 = jnp.float32(0.7)
+    assert float(jax.jit(f)(s0)) == pytest.approx(float(g(s0)), rel=1e-6)
+    assert float(jax.grad(f)(s0)) == pytest.approx(float(jax.grad(g)(s0)), rel=1e-5)
+    assert float(jax.jvp(f, (s0,), (1.0,))[1]) == pytest.approx(float(jax.grad(g)(s0)), rel=1e-5)
+    batch = jnp.stack([x, 2 * x])
+    np.testing.assert_array_equal(jax.vmap(materialise)(batch), batch)
+    np.testing.assert_array_equal(materialise(x.astype(jnp.complex64)), x.astype(jnp.complex64))
+    padded = jax.jit(lambda s: jnp.fft.rfft2(materialise(jnp.sin(s * x)), s=(8, 8)))
+    assert "conditional" in padded.lower(s0).compile().as_text()
 
 
 def test_sampling_conversions():

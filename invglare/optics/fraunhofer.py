@@ -23,7 +23,7 @@ from __future__ import annotations
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Complex, Float, Inexact
 
-from invglare.optics.fourier import crop_centred, mft2
+from invglare.optics.fourier import crop_centred, materialise, mft2
 from invglare.optics.sampling import AngularGrid, ApertureGrid, nm_to_mm, rad_to_deg
 
 # Guards the normalisation of an aperture that transmits nothing (e.g. a pupil of 0 mm).
@@ -63,6 +63,8 @@ def intensity_fft(
         raise ValueError(f"fft_npix ({fft_npix}) must be at least the aperture npix ({n})")
     if out_npix > fft_npix:
         raise ValueError(f"out_npix ({out_npix}) must not exceed fft_npix ({fft_npix})")
+    if fft_npix > n:
+        field = materialise(field)
     power = jnp.maximum(jnp.sum(jnp.abs(field) ** 2), _TINY_POWER)
     if fft_npix % 2 == 0:
         real_dtype = jnp.real(field).dtype

@@ -25,6 +25,7 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
 from invglare.errors import InputDataError, PhysicsRangeError
+from invglare.optics.fourier import materialise
 from invglare.optics.sampling import check_positive
 from invglare.optics.spectral import scale_psf
 
@@ -73,7 +74,7 @@ def _wrap_psf(psf: Float[Array, "c h w"], p: int, q: int) -> Float[Array, "c p q
     """Place a PSF on a `p` x `q` periodic grid with its centre pixel at index (0, 0)."""
     c, h, w = psf.shape
     if h <= p and w <= q:
-        padded = jnp.pad(psf, ((0, 0), (0, p - h), (0, q - w)))
+        padded = jnp.pad(materialise(psf), ((0, 0), (0, p - h), (0, q - w)))
         return jnp.roll(padded, (-(h // 2), -(w // 2)), axis=(1, 2))
     # A PSF larger than the period (circular mode only) folds onto itself.
     rows = (jnp.arange(h) - h // 2) % p

@@ -29,6 +29,7 @@ from jaxtyping import Array, ArrayLike, Float
 from invglare.dynamics import DynamicsState
 from invglare.errors import ConfigError, InputDataError
 from invglare.models.temporal import TemporalGlare, check_n_frames, frame_luminance_cd_m2
+from invglare.optics.fourier import materialise
 from invglare.render.convolve import fft_size, resample_psf
 from invglare.render.tonemap import tonemap
 
@@ -122,7 +123,7 @@ def frame_convolver(
     spectrum = jnp.fft.rfft2(planes, s=(p, q))
 
     def glare(spectrum: Array, psf_cf: Array) -> Array:
-        ker = psf_for_frame(model, psf_cf, image_scale_deg, size)
+        ker = materialise(psf_for_frame(model, psf_cf, image_scale_deg, size))
         h = ker.shape[-1]
         # The PSF's centre pixel goes to index (0, 0) of the periodic grid.
         ker = jnp.roll(
