@@ -38,7 +38,7 @@ from invglare.fit import (
     soft_clip,
     valid_paths,
 )
-from invglare.fit.solve import _covariance
+from invglare.fit.solve import _covariance, jacobian_by_columns
 from invglare.models.aperture_psf import AperturePSF
 
 DIAMETER = "model.aperture.shapes[0].diameter_mm"
@@ -676,3 +676,24 @@ def test_bad_fit_settings_raise_config_error():
         fit(space, template, target, coarse_to_fine=(4, 2))
     with pytest.raises(ConfigError, match="valid views"):
         fit(space, template, target, {"ring": 1.0})
+
+
+def test_jacobian_by_columns_equals_jacfwd_under_jit_and_vmap_1e12():
+    """The LM's residual wrapper changes how the Jacobian is computed, not what it is."""
+    with x64():
+        a = jnp.linspace(0.5, 2.0, 7)
+
+        def fn(z, args):
+            return jnp.sin(a * z[0]) * jnp.exp(-z[1] * a) + args * z[2] ** 2
+
+        wrapped = jacobian_by_columns(fn)
+        z = jnp.array([0.3, 0.7, -1.2])
+        expected = jax.jacfwd(fn)(z, 2.0)
+        np.testing.assert_allclose(jax.jit(jax.jacfwd(wrapped))(z, 2.0), expected, rtol=1e-12)
+        np.testing.assert_allclose(wrapped(z, 2.0), fn(z, 2.0), rtol=1e-15)
+        dz = jnp.array([1.0, -2.0, 0.5])
+        _, linear = jax.linearize(lambda u: wrapped(u, 2.0), z)
+        np.testing.assert_allclose(linear(dz), expected @ dz, rtol=1e-12)
+        zs = jnp.stack([z, 2 * z])
+        batched = jax.vmap(jax.jacfwd(wrapped), in_axes=(0, None))(zs, 2.0)
+        np.testing.assert_allclose(batched[1], jax.jacfwd(fn)(2 * z, 2.0), rtol=1e-12)
