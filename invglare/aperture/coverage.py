@@ -185,8 +185,8 @@ def curved_edge_coverage(
     flat = _coverage_from_widths(sd_px, a, b)
     # The square pixel is symmetric under reflections and the swap of x and y, so the
     # chord is that of the normal (a, b) up to t -> -t, which leaves the integral of t**2
-    # unchanged. Working with (a, b) shares them with the flat coverage and halves the
-    # reverse-mode cost (XLA's CPU code for the derivatives in nx and ny was the
+    # unchanged. Working with (a, b) shares them with the flat coverage and about halves
+    # the reverse-mode cost (XLA's CPU code for the derivatives in nx and ny was the
     # slowest part of a disk PSF's gradient). The chord lies in [-1, 1], where the
     # sliver profile is the plain parabola of `sliver_integral`.
     t_lo, t_hi = tangent_chord(sd_px, a, b)
