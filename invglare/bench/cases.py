@@ -199,6 +199,44 @@ def _kakimoto_eye_forward(n: int):
     return lambda: forward(model)
 
 
+#: Lights of the position-dependent render case, and its frame scale in model pixels.
+_POSITION_LIGHTS = 16
+_POSITION_FRAME_SCALE = 4
+
+
+def _position_render(n: int):
+    """An N x N frame with 16 lights on a ring, each rendered with the PSF of its direction."""
+    import jax.numpy as jnp
+
+    from invglare.aperture.eye import daylight_eye
+    from invglare.models.kakimoto import KakimotoGlare
+    from invglare.render.bright import bright_pixel_list
+    from invglare.render.position_glare import render_position_glare
+
+    probe = _kakimoto_eye(n)
+    scale = _POSITION_FRAME_SCALE * float(probe.propagator.output.pixel_scale_deg)
+    angle = np.linspace(0.0, 2.0 * np.pi, _POSITION_LIGHTS, endpoint=False)
+    rows = np.round(n // 2 + 0.25 * n * np.sin(angle)).astype(int)
+    cols = np.round(n // 2 + 0.25 * n * np.cos(angle)).astype(int)
+    frame = np.full((n, n), 0.01, np.float32)
+    frame[rows, cols] = 1000.0
+    model = KakimotoGlare.build(
+        daylight_eye(0),
+        focal_length_mm=17.0,
+        obstacle_distance_mm=8.0,
+        npix=n,
+        aperture_npix=n // 2,
+        colour="spectral",
+        wavelengths_nm=550.0,
+        masking="position",
+        max_light_angle_deg=0.3 * n * scale,
+    )
+    image = jnp.asarray(frame)
+    bright = bright_pixel_list(image, 100.0, _POSITION_LIGHTS)
+    max_npix = n // 4 + 1
+    return lambda: render_position_glare(model, image, bright, scale, max_npix, progress=False)
+
+
 def _kakimoto_eye_gradient(n: int):
     import equinox as eqx
     import jax.numpy as jnp
@@ -308,6 +346,14 @@ CASES: tuple[Case, ...] = (
         "d(sum w * PSF)/d(every float leaf of the daylight eye) of kakimoto_eye_psf",
         _kakimoto_eye_gradient,
         forward="kakimoto_eye_psf",
+    ),
+    Case(
+        "kakimoto_position_render",
+        "pipeline",
+        "masking='position' render of an N x N frame: 16 lights on a ring, each its own "
+        "daylight-eye PSF (N/2 raster + FFT to N, 8 per compiled call), resampled to 4x the "
+        "model's pixel scale and stamped as an (N/4+1)^2 billboard",
+        _position_render,
     ),
     Case(
         "kakimoto_camera_rgb",
