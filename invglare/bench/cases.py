@@ -175,8 +175,11 @@ def _eye_raster_gradient(n: int):
     return lambda: grad(eye, grid)
 
 
-def _kakimoto_eye(n: int):
-    """Kakimoto glare of the daylight eye, monochrome at 550 nm, N output, N/2 aperture."""
+def _kakimoto_eye(n: int, **options):
+    """Kakimoto glare of the daylight eye, monochrome at 550 nm, N output, N/2 aperture.
+
+    `options` go to `KakimotoGlare.build` (e.g. the masking).
+    """
     from invglare.aperture.eye import daylight_eye
     from invglare.models.kakimoto import KakimotoGlare
 
@@ -188,6 +191,7 @@ def _kakimoto_eye(n: int):
         aperture_npix=n // 2,
         colour="spectral",
         wavelengths_nm=550.0,
+        **options,
     )
 
 
@@ -208,8 +212,6 @@ def _position_render(n: int):
     """An N x N frame with 16 lights on a ring, each rendered with the PSF of its direction."""
     import jax.numpy as jnp
 
-    from invglare.aperture.eye import daylight_eye
-    from invglare.models.kakimoto import KakimotoGlare
     from invglare.render.bright import bright_pixel_list
     from invglare.render.position_glare import render_position_glare
 
@@ -220,17 +222,7 @@ def _position_render(n: int):
     cols = np.round(n // 2 + 0.25 * n * np.cos(angle)).astype(int)
     frame = np.full((n, n), 0.01, np.float32)
     frame[rows, cols] = 1000.0
-    model = KakimotoGlare.build(
-        daylight_eye(0),
-        focal_length_mm=17.0,
-        obstacle_distance_mm=8.0,
-        npix=n,
-        aperture_npix=n // 2,
-        colour="spectral",
-        wavelengths_nm=550.0,
-        masking="position",
-        max_light_angle_deg=0.3 * n * scale,
-    )
+    model = _kakimoto_eye(n, masking="position", max_light_angle_deg=0.3 * n * scale)
     image = jnp.asarray(frame)
     bright = bright_pixel_list(image, 100.0, _POSITION_LIGHTS)
     max_npix = n // 4 + 1

@@ -29,7 +29,7 @@ from invglare.optics.fourier import materialise
 from invglare.optics.sampling import check_positive
 from invglare.optics.spectral import scale_psf
 
-__all__ = ["check_compatible_scales", "convolve_psf", "fft_size", "resample_psf"]
+__all__ = ["check_compatible_scales", "convolve_psf", "fft_size", "resample_psf", "wrap_psf"]
 
 
 def fft_size(n: int) -> int:
@@ -70,7 +70,7 @@ def _as_float(x: ArrayLike) -> Array:
     return x
 
 
-def _wrap_psf(psf: Float[Array, "c h w"], p: int, q: int) -> Float[Array, "c p q"]:
+def wrap_psf(psf: Float[Array, "c h w"], p: int, q: int) -> Float[Array, "c p q"]:
     """Place a PSF on a `p` x `q` periodic grid with its centre pixel at index (0, 0)."""
     c, h, w = psf.shape
     if h <= p and w <= q:
@@ -135,7 +135,7 @@ def convolve_psf(
     if min(hh, ww, h, w) < 1:
         raise InputDataError(f"empty image {image.shape} or PSF {psf.shape}")
     p, q = (fft_size(hh + h - 1), fft_size(ww + w - 1)) if pad else (hh, ww)
-    spectrum = jnp.fft.rfft2(img, s=(p, q)) * jnp.fft.rfft2(_wrap_psf(ker, p, q))
+    spectrum = jnp.fft.rfft2(img, s=(p, q)) * jnp.fft.rfft2(wrap_psf(ker, p, q))
     out = jnp.fft.irfft2(spectrum, s=(p, q))[:, :hh, :ww]
     if image.ndim == 2 and psf.ndim == 2:
         return out[0]

@@ -29,8 +29,7 @@ from jaxtyping import Array, ArrayLike, Float
 from invglare.dynamics import DynamicsState
 from invglare.errors import ConfigError, InputDataError
 from invglare.models.temporal import TemporalGlare, check_n_frames, frame_luminance_cd_m2
-from invglare.optics.fourier import materialise
-from invglare.render.convolve import fft_size, resample_psf
+from invglare.render.convolve import fft_size, resample_psf, wrap_psf
 from invglare.render.tonemap import tonemap
 
 __all__ = [
@@ -123,12 +122,7 @@ def frame_convolver(
     spectrum = jnp.fft.rfft2(planes, s=(p, q))
 
     def glare(spectrum: Array, psf_cf: Array) -> Array:
-        ker = materialise(psf_for_frame(model, psf_cf, image_scale_deg, size))
-        h = ker.shape[-1]
-        # The PSF's centre pixel goes to index (0, 0) of the periodic grid.
-        ker = jnp.roll(
-            jnp.pad(ker, ((0, 0), (0, p - h), (0, q - h))), (-(h // 2), -(h // 2)), (1, 2)
-        )
+        ker = wrap_psf(psf_for_frame(model, psf_cf, image_scale_deg, size), p, q)
         out = jnp.fft.irfft2(spectrum * jnp.fft.rfft2(ker), s=(p, q))[:, :height, :width]
         return out[0] if image.ndim == 2 else jnp.moveaxis(out, 0, -1)
 
