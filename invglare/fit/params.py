@@ -467,8 +467,15 @@ class ParameterSpace:
     def from_latent(self, latent: Float[ArrayLike, "*batch p"]) -> Float[Array, "*batch p"]:
         """Physical values from latent ones (any leading batch axes)."""
         z = jnp.asarray(latent)
-        cols = [p.to_physical(z[..., i]) for i, p in enumerate(self.all)]
-        return jnp.stack(cols, axis=-1)
+        return jnp.stack(self.from_latent_parts([z[..., i] for i in range(self.size)]), axis=-1)
+
+    def from_latent_parts(self, parts: Sequence[Array]) -> list[Array]:
+        """`from_latent` one parameter at a time: a list of physical values from a list of
+        latent ones. Kept apart (never stacked into one vector), a tangent on one of them
+        stays on that parameter's path through the model (see `apply`)."""
+        if len(parts) != self.size:
+            raise ConfigError(f"expected {self.size} latent values, got {len(parts)}")
+        return [p.to_physical(z) for z, p in zip(parts, self.all, strict=True)]
 
     def to_latent(
         self, values: Mapping[str, float] | Float[ArrayLike, "*batch p"]
@@ -503,18 +510,25 @@ class ParameterSpace:
 
     # ---- the model
 
-    def apply(self, model: Any, values: Float[ArrayLike, " p"]) -> Any:
+    def apply(self, model: Any, values: Float[ArrayLike, " p"] | Sequence[Array]) -> Any:
         """`model` with each free leaf replaced by the physical value in `values`.
 
+        `values` is a vector or a list of scalars (as from `from_latent_parts`): a forward
+        derivative in one scalar of a list then reaches only the leaves and computations
+        that depend on it, whereas every entry of a vector shares the vector's tangent.
         Values are cast to the leaf's dtype; array elements are written with
         ``.at[i].set``. Works under `jit`, `vmap` and `grad`.
         """
-        x = jnp.asarray(values)
-        for i, p in enumerate(self.all):
+        if isinstance(values, list | tuple):
+            xs = list(values)
+        else:
+            x = jnp.asarray(values)
+            xs = [x[i] for i in range(x.shape[0])]
+        for p, value in zip(self.all, xs, strict=True):
             steps, index = resolve_path(model, p.path, p.steps)
             where = _getter(steps)
             leaf = where(model)
-            v = x[i].astype(leaf.dtype)
+            v = jnp.asarray(value).astype(leaf.dtype)
             if index:
                 model = eqx.tree_at(where, model, replace_fn=lambda a, v=v, k=index: a.at[k].set(v))
             else:

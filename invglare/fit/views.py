@@ -27,7 +27,7 @@ from __future__ import annotations
 import abc
 import dataclasses
 import math
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from typing import Any
 
 import equinox as eqx
@@ -519,11 +519,16 @@ class ResidualFn(eqx.Module):
     names: tuple[str, ...] = eqx.field(static=True)
     weights: tuple[float, ...] = eqx.field(static=True)
 
-    def forward_at(self, latent: Float[Array, " p"]) -> Forward:
-        """The forward model with the free parameters set from `latent`."""
-        return self.space.apply(self.forward, self.space.from_latent(latent))
+    def forward_at(self, latent: Float[Array, " p"] | Sequence[Array]) -> Forward:
+        """The forward model with the free parameters set from `latent` (a vector, or a
+        list of scalars: see :meth:`at_parts`)."""
+        if isinstance(latent, list | tuple):
+            values = self.space.from_latent_parts(latent)
+        else:
+            values = self.space.from_latent(latent)
+        return self.space.apply(self.forward, values)
 
-    def context(self, latent: Float[Array, " p"]) -> ViewContext:
+    def context(self, latent: Float[Array, " p"] | Sequence[Array]) -> ViewContext:
         fwd = self.forward_at(latent)
         expected, predicted = fwd.predict()
         h, w = self.target.shape
@@ -537,7 +542,16 @@ class ResidualFn(eqx.Module):
 
     def __call__(self, latent: Float[Array, " p"], args: Any = None) -> Float[Array, " n"]:
         del args
-        ctx = self.context(latent)
+        return self.at_parts([latent[i] for i in range(self.space.size)])
+
+    def at_parts(self, parts: Sequence[Array]) -> Float[Array, " n"]:
+        """The residuals at the latent values `parts`, a list of scalars.
+
+        Kept apart, a forward derivative in one of them only runs through the part of the
+        model that parameter touches (a flux column is one multiply, not a tangent FFT):
+        :func:`invglare.fit.solve.jacobian_by_columns` builds the Jacobian this way.
+        """
+        ctx = self.context(list(parts))
         parts = [
             math.sqrt(wt) * v(ctx).astype(self.target.dtype)
             for v, wt in zip(self.views, self.weights, strict=True)
