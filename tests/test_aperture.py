@@ -29,6 +29,7 @@ from invglare.aperture import (
     occlude,
     shape_from_config,
     shape_to_config,
+    strip_coverage,
     union,
 )
 from invglare.aperture.coverage import sliver_integral
@@ -100,6 +101,23 @@ def test_edge_coverage_exact_vs_polygon_clipping_2e7_float32_1e12_float64():
         got64 = np.asarray(edge_coverage(jnp.asarray(sd), jnp.asarray(nx), jnp.asarray(ny)))
     assert got64.dtype == np.float64
     assert np.abs(got64 - exact).max() < 1e-12  # measured 2e-16
+
+
+def test_strip_coverage_is_a_difference_of_edges_against_polygon_clipping_1e12():
+    """A strip between two parallel edges: exact area of the pixel between them (float64)."""
+    rng = np.random.default_rng(4)
+    sd = rng.uniform(-1.0, 1.0, 300)
+    width = rng.uniform(0.0, 1.5, 300)
+    nx, ny = _random_normals(rng, 300)
+    exact = np.array(
+        [
+            _clipped_square_area(s, x, y) - _clipped_square_area(s + w, x, y)
+            for s, w, x, y in zip(sd, width, nx, ny, strict=True)
+        ]
+    )
+    with helpers.x64():
+        got = np.asarray(strip_coverage(*(jnp.asarray(v) for v in (sd, sd + width, nx, ny))))
+    assert np.abs(got - exact).max() < 1e-12
 
 
 def test_edge_coverage_vs_brute_force_supersampling_1e3():

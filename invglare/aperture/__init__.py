@@ -5,6 +5,7 @@ from invglare.aperture.compose import occlude as occlude
 from invglare.aperture.compose import union as union
 from invglare.aperture.coverage import curved_edge_coverage as curved_edge_coverage
 from invglare.aperture.coverage import edge_coverage as edge_coverage
+from invglare.aperture.coverage import strip_coverage as strip_coverage
 from invglare.aperture.primitives import ROLES as ROLES
 from invglare.aperture.primitives import AbstractShape as AbstractShape
 from invglare.aperture.primitives import Capsule as Capsule

@@ -39,7 +39,7 @@ import numpy as np
 from jax.scipy.special import ndtri
 from jaxtyping import Array, ArrayLike, Float, UInt
 
-from invglare.aperture.coverage import edge_coverage
+from invglare.aperture.coverage import strip_coverage
 from invglare.aperture.primitives import RegularPolygon
 from invglare.errors import ConfigError, PhysicsRangeError
 from invglare.optics.sampling import ApertureGrid, check_positive
@@ -339,13 +339,11 @@ class CrossScreen(eqx.Module):
         # is -m: the m-th line moves by m times the change of spacing, as it should.
         d = u - spacing * jnp.round(u / spacing)
         half = 0.5 * duty * spacing
-        px = grid.pitch_mm
+        inv_px = 1.0 / grid.pitch_mm
         total = jnp.zeros(jnp.broadcast_shapes(d.shape, nx.shape), dtype=d.dtype)
         for j in (-1.0, 0.0, 1.0):
             dj = d - j * spacing
-            inside_far = edge_coverage((dj - half) / px, nx, ny)
-            inside_near = edge_coverage((dj + half) / px, nx, ny)
-            total = total + (inside_far - inside_near)
+            total = total + strip_coverage((dj - half) * inv_px, (dj + half) * inv_px, nx, ny)
         return jnp.clip(total, 0.0, 1.0)
 
     def transmission(

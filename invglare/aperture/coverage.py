@@ -29,14 +29,18 @@ from jaxtyping import Array, ArrayLike, Float
 _MIN_WIDTH = 1e-6
 
 
-def _lower_tail(t: Array, a: Array, b: Array) -> Array:
-    """Trapezoid CDF at ``t <= 0`` (the half below the median, where precision is best)."""
+def _lower_tail(t: Array, a: Array, b: Array, inv_a: Array, inv_2ab: Array) -> Array:
+    """Trapezoid CDF at ``t <= 0`` (the half below the median, where precision is best).
+
+    Takes ``1 / a`` and ``1 / (2 a b)`` precomputed: XLA's CPU loops divide element by
+    element, and the reciprocals are shared between the two edges of a capsule.
+    """
     s = t + 0.5 * (a + b)  # distance from the left end of the support
     s_pos = jnp.maximum(s, 0.0)
-    quad = s_pos * s_pos / (2.0 * a * b)
+    quad = s_pos * s_pos * inv_2ab
     # Written as (t + a/2) / a rather than (s - b/2) / a so that an axis-aligned edge
     # (a = 1) gives exactly 0.5 - sd.
-    lin = (t + 0.5 * a) / a
+    lin = (t + 0.5 * a) * inv_a
     return jnp.where(s <= 0.0, 0.0, jnp.where(s < b, quad, lin))
 
 
@@ -73,6 +77,21 @@ def edge_coverage(
     return _coverage_from_widths(jnp.asarray(sd_px), *_trapezoid_widths(nx, ny))
 
 
+def strip_coverage(
+    sd_near_px: Float[ArrayLike, "*shape"],
+    sd_far_px: Float[ArrayLike, "*shape"],
+    nx: Float[ArrayLike, "*shape"],
+    ny: Float[ArrayLike, "*shape"],
+) -> Float[Array, "*shape"]:
+    """Fraction of a pixel between two parallel edges: ``edge_coverage(sd_near_px, nx, ny) -
+    edge_coverage(sd_far_px, nx, ny)``, a strip such as a thick line (``sd_far_px >=
+    sd_near_px``). The two edges share one normal, so they share its reciprocals."""
+    a, b = _trapezoid_widths(nx, ny)
+    inv_a, inv_2ab = _width_reciprocals(a, b)
+    near = _coverage_from_widths(jnp.asarray(sd_near_px), a, b, inv_a, inv_2ab)
+    return near - _coverage_from_widths(jnp.asarray(sd_far_px), a, b, inv_a, inv_2ab)
+
+
 def _trapezoid_widths(nx: ArrayLike, ny: ArrayLike) -> tuple[Array, Array]:
     """``(max(|nx|, |ny|), min(|nx|, |ny|))``, both clamped below by `_MIN_WIDTH`."""
     ax = jnp.abs(jnp.asarray(nx))
@@ -82,15 +101,25 @@ def _trapezoid_widths(nx: ArrayLike, ny: ArrayLike) -> tuple[Array, Array]:
     return a, b
 
 
-def _coverage_from_widths(sd_px: Array, a: Array, b: Array) -> Array:
-    """`edge_coverage` for the trapezoid widths `a` >= `b` of the normal."""
+def _coverage_from_widths(
+    sd_px: Array, a: Array, b: Array, inv_a: Array | None = None, inv_2ab: Array | None = None
+) -> Array:
+    """`edge_coverage` for the trapezoid widths `a` >= `b` of the normal (and, optionally,
+    their reciprocals ``1 / a`` and ``1 / (2 a b)``)."""
+    if inv_a is None or inv_2ab is None:
+        inv_a, inv_2ab = _width_reciprocals(a, b)
     x = -sd_px
     # Evaluate the lower half only and mirror it (CDF(x) = 1 - CDF(-x)); the branch is
     # chosen with `where` rather than `abs` so that the derivative at x = 0 is the density.
     below = x <= 0.0
     t = jnp.where(below, x, -x)
-    tail = _lower_tail(t, a, b)
+    tail = _lower_tail(t, a, b, inv_a, inv_2ab)
     return jnp.where(below, tail, 1.0 - tail)
+
+
+def _width_reciprocals(a: Array, b: Array) -> tuple[Array, Array]:
+    inv_a = 1.0 / a
+    return inv_a, 0.5 * inv_a / b
 
 
 def tangent_chord(
@@ -111,10 +140,10 @@ def tangent_chord(
     # Each of |qx| <= 1/2 and |qy| <= 1/2 confines t to an interval (to all t when the
     # normal lies along that axis: the clamp turns that into a huge interval and leaves the
     # other constraint to decide).
-    nx_s = jnp.where(jnp.abs(nx) > _MIN_WIDTH, nx, _MIN_WIDTH)
-    ny_s = jnp.where(jnp.abs(ny) > _MIN_WIDTH, ny, _MIN_WIDTH)
-    c1, h1 = -sd_px * nx / ny_s, 0.5 / jnp.abs(ny_s)
-    c2, h2 = sd_px * ny / nx_s, 0.5 / jnp.abs(nx_s)
+    inv_nx = 1.0 / jnp.where(jnp.abs(nx) > _MIN_WIDTH, nx, _MIN_WIDTH)
+    inv_ny = 1.0 / jnp.where(jnp.abs(ny) > _MIN_WIDTH, ny, _MIN_WIDTH)
+    c1, h1 = -sd_px * nx * inv_ny, 0.5 * jnp.abs(inv_ny)
+    c2, h2 = sd_px * ny * inv_nx, 0.5 * jnp.abs(inv_nx)
     # A chord inside the pixel has |t| <= sqrt(2)/2; clipping to [-1, 1] keeps later powers
     # of t finite however large the clamped intervals are.
     t_lo = jnp.clip(jnp.maximum(c1 - h1, c2 - h2), -1.0, 1.0)
@@ -142,7 +171,7 @@ def sliver_integral(
     # differences of cubes of |t - t0|, which can be tens of pixels (a capsule side's arc
     # starts far along the side) and would lose all float32 precision.
     a, b = jnp.clip(t_lo, t1, t2), jnp.clip(t_hi, t1, t2)
-    parabola = ((b - t0) ** 3 - (a - t0) ** 3) / 6.0
+    parabola = ((b - t0) ** 3 - (a - t0) ** 3) * (1.0 / 6.0)
 
     def tangent_piece(lo, hi, tk):
         # integral over [lo, hi] of the tangent line at tk: (tk - t0) * (t - (tk + t0) / 2)
@@ -190,5 +219,5 @@ def curved_edge_coverage(
     # slowest part of a disk PSF's gradient). The chord lies in [-1, 1], where the
     # sliver profile is the plain parabola of `sliver_integral`.
     t_lo, t_hi = tangent_chord(sd_px, a, b)
-    sliver = jnp.asarray(curvature_per_px) * (t_hi**3 - t_lo**3) / 6.0
+    sliver = jnp.asarray(curvature_per_px) * (1.0 / 6.0) * (t_hi**3 - t_lo**3)
     return jnp.clip(flat - sliver, 0.0, 1.0)

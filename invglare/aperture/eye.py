@@ -330,7 +330,7 @@ class Eyelids(eqx.Module):
         # The lid region is concave along its margin: negative curvature.
         curvature = -kappa / g**3
         pitch = grid.pitch_mm
-        return curved_edge_coverage(sd / pitch, nx, ny, curvature * pitch)
+        return curved_edge_coverage(sd * (1.0 / pitch), nx, ny, curvature * pitch)
 
     def coverage(self, grid: ApertureGrid, shift_mm: ArrayLike = (0.0, 0.0)) -> Float[Array, "n n"]:
         """Fraction of each pixel covered by either lid, ``min(1, c_upper + c_lower)``."""

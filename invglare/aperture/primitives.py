@@ -32,8 +32,8 @@ from jaxtyping import Array, ArrayLike, Float
 
 from invglare.aperture.coverage import (
     curved_edge_coverage,
-    edge_coverage,
     sliver_integral,
+    strip_coverage,
     tangent_chord,
 )
 from invglare.errors import ConfigError, InputDataError, PhysicsRangeError
@@ -93,8 +93,9 @@ def _safe_norm(dx: Array, dy: Array, fallback: tuple = (1.0, 0.0)) -> tuple[Arra
     ok = r2 > 0.0
     r_safe = jnp.sqrt(jnp.where(ok, r2, 1.0))
     r = jnp.where(ok, r_safe, 0.0)
-    ux = jnp.where(ok, dx / r_safe, fallback[0])
-    uy = jnp.where(ok, dy / r_safe, fallback[1])
+    inv_r = 1.0 / r_safe  # one division, not two: XLA's CPU loops divide element by element
+    ux = jnp.where(ok, dx * inv_r, fallback[0])
+    uy = jnp.where(ok, dy * inv_r, fallback[1])
     return r, ux, uy
 
 
@@ -108,7 +109,7 @@ def _coverage_from_sdf(
     grid: ApertureGrid, sd_mm: Array, nx: Array, ny: Array, curvature_per_mm: Array
 ) -> Array:
     px = grid.pitch_mm
-    return curved_edge_coverage(sd_mm / px, nx, ny, curvature_per_mm * px)
+    return curved_edge_coverage(sd_mm * (1.0 / px), nx, ny, curvature_per_mm * px)
 
 
 # --------------------------------------------------------------------------------------
@@ -327,7 +328,7 @@ class RegularPolygon(AbstractShape):
     def coverage(self, grid: ApertureGrid) -> Float[Array, "n n"]:
         sd, nx, ny, kappa = self.edge_distances_mm(grid)
         px = grid.pitch_mm
-        return jnp.min(curved_edge_coverage(sd / px, nx, ny, kappa * px), axis=0)
+        return jnp.min(curved_edge_coverage(sd * (1.0 / px), nx, ny, kappa * px), axis=0)
 
     def extent_radius_mm(self) -> float:
         phi, apothem, half_edge, s = (np.asarray(v, dtype=float) for v in self._edge_geometry())
@@ -397,18 +398,18 @@ class Capsule(AbstractShape):
 
     def coverage(self, grid: ApertureGrid) -> Float[Array, "n n"]:
         rho, nx, ny, at_end, sign, t, length, ux, uy = self._axis_distance(grid)
-        px = grid.pitch_mm
+        # Lengths in px by one scalar reciprocal: XLA's CPU loops divide element by element.
+        inv_px = 1.0 / grid.pitch_mm
         half = 0.5 * self.thickness_mm
-        sd_px = (rho - half) / px
-        near = edge_coverage(sd_px, nx, ny)
-        far = edge_coverage((rho + half) / px, nx, ny)
+        sd_px = (rho - half) * inv_px
+        strip = strip_coverage(sd_px, (rho + half) * inv_px, nx, ny)
         # Curvature correction of the round ends. The edge's curvature jumps from 0 to
         # 1 / half where an end meets a straight side, so the deviation of the edge from the
         # local tangent line is modelled piecewise (parabola on the arc, straight beyond its
         # ends); both sides of the junction then see the same edge and the coverage stays
         # continuous. Tangent coordinates below are in px along (-ny, nx).
         t_lo, t_hi = tangent_chord(sd_px, nx, ny)
-        r_px, t_px, len_px = half / px, t / px, length / px
+        r_px, t_px, len_px = half * inv_px, t * inv_px, length * inv_px
         # End pixels: the tangent point is the vertex; the near junction lies at r sin(beta)
         # (beta = angle from the side), the far one is bounded at r (the arc's quarter).
         t_near = r_px * sign * (nx * ux + ny * uy)
@@ -424,8 +425,8 @@ class Capsule(AbstractShape):
         to_end = len_px - t_px
         side_sliver = side_sliver + sliver_integral(-hi_a, -lo_a, to_end, to_end, to_end + r_px)
         # (the floor only matters for a zero thickness reached inside a traced fit)
-        sliver = jnp.where(at_end, end_sliver, side_sliver) / jnp.maximum(r_px, 1e-6)
-        return jnp.clip(near - sliver - far, 0.0, 1.0)
+        sliver = jnp.where(at_end, end_sliver, side_sliver) * (1.0 / jnp.maximum(r_px, 1e-6))
+        return jnp.clip(strip - sliver, 0.0, 1.0)
 
     def extent_radius_mm(self) -> float:
         a = float(np.hypot(*np.asarray(self.start_mm, dtype=float)))
