@@ -93,7 +93,7 @@ def _safe_norm(dx: Array, dy: Array, fallback: tuple = (1.0, 0.0)) -> tuple[Arra
     ok = r2 > 0.0
     r_safe = jnp.sqrt(jnp.where(ok, r2, 1.0))
     r = jnp.where(ok, r_safe, 0.0)
-    inv_r = 1.0 / r_safe  # one division, not two: XLA's CPU loops divide element by element
+    inv_r = 1.0 / r_safe  # one division, not two (see the note in invglare.aperture.coverage)
     ux = jnp.where(ok, dx * inv_r, fallback[0])
     uy = jnp.where(ok, dy * inv_r, fallback[1])
     return r, ux, uy
@@ -398,7 +398,7 @@ class Capsule(AbstractShape):
 
     def coverage(self, grid: ApertureGrid) -> Float[Array, "n n"]:
         rho, nx, ny, at_end, sign, t, length, ux, uy = self._axis_distance(grid)
-        # Lengths in px by one scalar reciprocal: XLA's CPU loops divide element by element.
+        # Lengths in px through one scalar reciprocal, not a division per pixel.
         inv_px = 1.0 / grid.pitch_mm
         half = 0.5 * self.thickness_mm
         sd_px = (rho - half) * inv_px

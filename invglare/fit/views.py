@@ -549,14 +549,14 @@ class ResidualFn(eqx.Module):
 
         Kept apart, a forward derivative in one of them only runs through the part of the
         model that parameter touches (a flux column is one multiply, not a tangent FFT):
-        :func:`invglare.fit.solve.jacobian_by_columns` builds the Jacobian this way.
+        :func:`invglare.fit.solve.jacobian_columns` builds the Jacobian this way.
         """
         ctx = self.context(list(parts))
-        parts = [
+        weighted = [
             math.sqrt(wt) * v(ctx).astype(self.target.dtype)
             for v, wt in zip(self.views, self.weights, strict=True)
         ]
-        return jnp.concatenate(parts)
+        return jnp.concatenate(weighted)
 
     def loss(self, latent: Float[Array, " p"]) -> Float[Array, ""]:
         """``sum(residuals**2)`` (chi-square when every view is noise-normalised)."""
