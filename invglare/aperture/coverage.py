@@ -80,7 +80,8 @@ def edge_coverage(
     edge_coverage(0.25, 1.0, 0.0)  # 0.25: a vertical edge a quarter pixel left of the centre
     ```
     """
-    return _coverage_from_widths(jnp.asarray(sd_px), *_trapezoid_widths(nx, ny))
+    a, b = _trapezoid_widths(nx, ny)
+    return _coverage_from_widths(jnp.asarray(sd_px), a, b, *_width_reciprocals(a, b))
 
 
 def strip_coverage(
@@ -107,13 +108,9 @@ def _trapezoid_widths(nx: ArrayLike, ny: ArrayLike) -> tuple[Array, Array]:
     return a, b
 
 
-def _coverage_from_widths(
-    sd_px: Array, a: Array, b: Array, inv_a: Array | None = None, inv_2ab: Array | None = None
-) -> Array:
-    """`edge_coverage` for the trapezoid widths `a` >= `b` of the normal (and, optionally,
-    their reciprocals ``1 / a`` and ``1 / (2 a b)``)."""
-    if inv_a is None or inv_2ab is None:
-        inv_a, inv_2ab = _width_reciprocals(a, b)
+def _coverage_from_widths(sd_px: Array, a: Array, b: Array, inv_a: Array, inv_2ab: Array) -> Array:
+    """`edge_coverage` for the trapezoid widths `a` >= `b` of the normal and their
+    reciprocals ``1 / a``, ``1 / (2 a b)`` (from `_width_reciprocals`)."""
     x = -sd_px
     # Evaluate the lower half only and mirror it (CDF(x) = 1 - CDF(-x)); the branch is
     # chosen with `where` rather than `abs` so that the derivative at x = 0 is the density.
@@ -217,7 +214,7 @@ def curved_edge_coverage(
     """
     sd_px = jnp.asarray(sd_px)
     a, b = _trapezoid_widths(nx, ny)
-    flat = _coverage_from_widths(sd_px, a, b)
+    flat = _coverage_from_widths(sd_px, a, b, *_width_reciprocals(a, b))
     # The square pixel is symmetric under reflections and the swap of x and y, so the
     # chord is that of the normal (a, b) up to t -> -t, which leaves the integral of t**2
     # unchanged. Working with (a, b) shares them with the flat coverage and about halves
