@@ -35,6 +35,7 @@ from invglare.render import (
     kakimoto_sigmoid,
     kakimoto_sigmoid_inverse,
     kakimoto_tonemap,
+    linear_period,
     luminance,
     reinhard_global,
     resample_psf,
@@ -130,6 +131,29 @@ def test_convolution_has_no_wrap_around():
     # Without padding the convolution is circular: the light does wrap (so the test can fail).
     wrapped = np.asarray(convolve_psf(image, psf, pad=False))
     np.testing.assert_allclose(wrapped[4:13, -4:], 1 / 81, rtol=1e-5)
+
+
+@pytest.mark.parametrize(("n_image", "n_psf"), [(12, 7), (12, 8), (9, 15), (10, 30), (6, 1)])
+def test_linear_period_is_the_shortest_wrap_free_period(rng, n_image, n_psf):
+    """The circular convolution over `linear_period` equals the direct sum (1e-10, float64);
+    one sample shorter, light wraps onto the image (for even and odd PSFs, larger or not)."""
+    from invglare.render.convolve import crop_psf_reach, wrap_psf
+
+    image, psf = rng.random(n_image), rng.random(n_psf)
+    ref = direct_convolution(image[:, None], psf[:, None])[:, 0]
+
+    def circular(period):
+        ker = crop_psf_reach(jnp.asarray(psf)[None, :, None], n_image, 1)
+        ker = np.asarray(wrap_psf(ker, period, 1))[0, :, 0]
+        full = np.fft.irfft(np.fft.rfft(image, period) * np.fft.rfft(ker), period)
+        return full[:n_image]
+
+    shortest = n_image + max(min(n_psf // 2, n_image - 1), min((n_psf - 1) // 2, n_image - 1))
+    assert linear_period(n_image, n_psf) >= shortest
+    np.testing.assert_allclose(circular(shortest), ref, atol=1e-10)
+    if n_psf > 1:
+        assert np.abs(circular(shortest - 1) - ref).max() > 1e-3
+    assert linear_period(512, 512) == 768
 
 
 def test_fft_size_is_smallest_235_smooth():

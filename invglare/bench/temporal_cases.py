@@ -21,7 +21,8 @@ frame) is computed before timing; everything a frame needs is timed:
   rasterised, times ``E``, one N x N FFT, 32 scaled copies into linear RGB (the paper's
   "overall");
 - ``temporal_frame``: that, plus the FFT convolution of an N x N RGB frame (zero-padded
-  to avoid wrap-around: transforms of about 2N x 2N) and the gamma 2.2 tone map;
+  to avoid wrap-around: transforms of 1.5N x 1.5N, see `linear_period`) and the gamma 2.2
+  tone map;
 - ``temporal_frame_wrap``: the same with a circular convolution on the frame's N x N
   grid, as a texture-based GPU pipeline does (light leaving one edge re-enters at the
   other).

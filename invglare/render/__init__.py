@@ -23,6 +23,7 @@ from invglare.render.bright import luminance as luminance
 from invglare.render.convolve import check_compatible_scales as check_compatible_scales
 from invglare.render.convolve import convolve_psf as convolve_psf
 from invglare.render.convolve import fft_size as fft_size
+from invglare.render.convolve import linear_period as linear_period
 from invglare.render.convolve import resample_psf as resample_psf
 from invglare.render.position_glare import position_psf_bank as position_psf_bank
 from invglare.render.position_glare import render_position_glare as render_position_glare

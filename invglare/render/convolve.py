@@ -29,7 +29,15 @@ from invglare.optics.fourier import materialise
 from invglare.optics.sampling import check_positive
 from invglare.optics.spectral import scale_psf
 
-__all__ = ["check_compatible_scales", "convolve_psf", "fft_size", "resample_psf", "wrap_psf"]
+__all__ = [
+    "check_compatible_scales",
+    "convolve_psf",
+    "crop_psf_reach",
+    "fft_size",
+    "linear_period",
+    "resample_psf",
+    "wrap_psf",
+]
 
 
 def fft_size(n: int) -> int:
@@ -53,6 +61,44 @@ def fft_size(n: int) -> int:
         if k == 1:
             return m
         m += 1
+
+
+def _reach(n_image: int, n_psf: int) -> tuple[int, int]:
+    """How far a PSF axis reaches back and forward from its centre that can land on the image."""
+    back = n_psf // 2
+    return min(back, n_image - 1), min(n_psf - 1 - back, n_image - 1)
+
+
+def linear_period(n_image: int, n_psf: int) -> int:
+    """The FFT length for a wrap-free convolution of an image axis, cropped to the image.
+
+    A PSF axis reaches ``a = n_psf // 2`` pixels back from its centre and ``b = n_psf -
+    1 - a`` forward, and only offsets up to ``n_image - 1`` join two pixels of the image.
+    A period ``N`` aliases an offset ``d`` onto ``d - N`` and ``d + N``; with ``N >=
+    n_image + max(a, b)`` (reaches capped at ``n_image - 1``) no alias lands on the image.
+    That is shorter than the full linear size ``n_image + n_psf - 1``: 768 instead of 1024
+    for a 512 px frame and PSF, 0.56 times the FFT work in 2-D. Rounded up by `fft_size`.
+
+    ```python
+    linear_period(512, 512)   # 768
+    ```
+    """
+    if min(n_image, n_psf) < 1:
+        raise ValueError(f"sizes must be >= 1, got image {n_image} and PSF {n_psf}")
+    return fft_size(n_image + max(_reach(n_image, n_psf)))
+
+
+def crop_psf_reach(psf: Float[Array, "c h w"], height: int, width: int) -> Float[Array, "c m n"]:
+    """A channels-first PSF without the rows and columns that reach past an image's extent.
+
+    Those never carry light from one pixel of a `height` x `width` image to another, and
+    dropping them lets the PSF fit the period of :func:`linear_period`. The centre pixel
+    stays at ``(m // 2, n // 2)``.
+    """
+    (up, down), (left, right) = _reach(height, psf.shape[1]), _reach(width, psf.shape[2])
+    cy, cx = psf.shape[1] // 2, psf.shape[2] // 2
+    # Each reach back is the one forward or one more, capped or not: the centre stays at size // 2.
+    return psf[:, cy - up : cy + down + 1, cx - left : cx + right + 1]
 
 
 def _channels_first(x: Array, what: str) -> Array:
@@ -93,8 +139,8 @@ def convolve_psf(
 
     ``out[y, x] = sum_{i, j} image[i, j] * psf[y - i + h // 2, x - j + w // 2]``,
     the PSF read as zero outside its window. With `pad=True` both arrays are
-    zero-padded to at least `(H + h - 1, W + w - 1)`, rounded up to a fast FFT
-    size (`fft_size`), so light leaving one edge never re-enters at the opposite
+    zero-padded to the period of `linear_period` (about `H + h / 2` by `W + w / 2`,
+    a fast FFT size), so light leaving one edge never re-enters at the opposite
     one; the result is cropped back to `(H, W)`. `pad=False` computes the
     circular convolution on the `(H, W)` grid (wrap-around; only for periodic
     content or a quick look).
@@ -134,7 +180,11 @@ def convolve_psf(
     _, h, w = ker.shape
     if min(hh, ww, h, w) < 1:
         raise InputDataError(f"empty image {image.shape} or PSF {psf.shape}")
-    p, q = (fft_size(hh + h - 1), fft_size(ww + w - 1)) if pad else (hh, ww)
+    if pad:
+        ker = crop_psf_reach(ker, hh, ww)
+        p, q = linear_period(hh, h), linear_period(ww, w)
+    else:
+        p, q = hh, ww
     spectrum = jnp.fft.rfft2(img, s=(p, q)) * jnp.fft.rfft2(wrap_psf(ker, p, q))
     out = jnp.fft.irfft2(spectrum, s=(p, q))[:, :hh, :ww]
     if image.ndim == 2 and psf.ndim == 2:

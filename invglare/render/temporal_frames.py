@@ -29,7 +29,7 @@ from jaxtyping import Array, ArrayLike, Float
 from invglare.dynamics import DynamicsState
 from invglare.errors import ConfigError, InputDataError
 from invglare.models.temporal import TemporalGlare, check_n_frames, frame_luminance_cd_m2
-from invglare.render.convolve import fft_size, resample_psf, wrap_psf
+from invglare.render.convolve import crop_psf_reach, linear_period, resample_psf, wrap_psf
 from invglare.render.tonemap import tonemap
 
 __all__ = [
@@ -117,12 +117,13 @@ def frame_convolver(
             )
         p, q = height, width
     else:
-        p, q = fft_size(height + n_psf - 1), fft_size(width + n_psf - 1)
+        p, q = linear_period(height, n_psf), linear_period(width, n_psf)
     planes = image[None] if image.ndim == 2 else jnp.moveaxis(image, -1, 0)
     spectrum = jnp.fft.rfft2(planes, s=(p, q))
 
     def glare(spectrum: Array, psf_cf: Array) -> Array:
-        ker = wrap_psf(psf_for_frame(model, psf_cf, image_scale_deg, size), p, q)
+        ker = psf_for_frame(model, psf_cf, image_scale_deg, size)
+        ker = wrap_psf(ker if wrap else crop_psf_reach(ker, height, width), p, q)
         out = jnp.fft.irfft2(spectrum * jnp.fft.rfft2(ker), s=(p, q))[:, :height, :width]
         return out[0] if image.ndim == 2 else jnp.moveaxis(out, 0, -1)
 

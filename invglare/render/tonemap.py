@@ -66,7 +66,8 @@ def _float(x: ArrayLike) -> Array:
 def _safe_pow(x: Array, p) -> Array:
     """``x ** p`` for ``x >= 0`` and ``0 < p < 1``, with a zero (not NaN) gradient at x = 0."""
     positive = x > 0
-    return jnp.where(positive, jnp.where(positive, x, 1) ** p, 0)
+    # As exp(p log x): XLA's CPU power of a float32 frame took 2.3 times as long (512² RGB).
+    return jnp.where(positive, jnp.exp(p * jnp.log(jnp.where(positive, x, 1))), 0)
 
 
 # --------------------------------------------------------------------------- Kakimoto
