@@ -25,6 +25,7 @@ from invglare.bench.runner import (
     select,
 )
 from invglare.bench.sample import SAMPLE_CASES
+from invglare.bench.temporal_cases import STAGES, stage_markdown
 from invglare.bench.timing import measure
 from invglare.cli import app
 from invglare.errors import ConfigError
@@ -93,6 +94,22 @@ def test_case_names_are_unique_and_gradients_name_an_existing_forward():
 
 def _rec(case, size, ms, kind="pipeline", forward=None):
     return {"case": case, "kind": kind, "size": size, "median_ms": ms, "forward": forward}
+
+
+def test_temporal_stages_chain_to_the_frame_and_are_tabulated_with_their_shares():
+    """The stage cases are the frame's pieces: chained, they give its display values."""
+    by_name = {c.name: c for c in CASES}
+    _, frame = by_name["temporal_frame"].make(TINY)()
+    staged = by_name["temporal_stage_tonemap"].make(TINY)()
+    assert staged.shape == frame.shape == (TINY, TINY, 3)
+    np.testing.assert_allclose(np.asarray(staged), np.asarray(frame), atol=1e-5)
+
+    times = dict(zip([name for name, _ in STAGES], [1.0, 2.0, 3.0, 4.0, 10.0], strict=True))
+    records = [_rec(f"temporal_stage_{name}", 64, ms) for name, ms in times.items()]
+    md = "\n".join(stage_markdown([*records, _rec("temporal_frame", 64, 19.0)]))
+    row = "| 64 | 1.0 (5 %) | 2.0 (10 %) | 3.0 (15 %) | 4.0 (20 %) | 10.0 (50 %) | 20.0 | 19.0 |"
+    assert row in md
+    assert stage_markdown([_rec("temporal_frame", 64, 19.0)]) == []
 
 
 def test_add_ratios_from_synthetic_records():
@@ -167,10 +184,10 @@ def test_run_bench_writes_json_and_markdown_with_ratios_from_the_records(tmp_pat
         assert r["ratio"] == pytest.approx(r["median_ms"] / floor, abs=6e-4)
         assert r["vs_jax_fft"] == pytest.approx(r["median_ms"] / jfft["median_ms"], abs=6e-4)
     meta = data["meta"]
-    assert meta["wall_s"] > 0 and "jax" in meta and any("14664" in n for n in meta["notes"])
+    assert meta["wall_s"] > 0 and "jax" in meta and any("`fft_jax`" in n for n in meta["notes"])
     md = (tmp_path / "bench.md").read_text()
     assert "## Ratio to the FFT floor" in md and "## All timings" in md
-    assert f"| psf_mono | {TINY} |" in md and "14664" in md and "## Fit" not in md
+    assert f"| psf_mono | {TINY} |" in md and "JAX's CPU FFT" in md and "## Fit" not in md
 
 
 def test_a_fit_only_run_keeps_the_timings_and_the_other_way_round(tmp_path):

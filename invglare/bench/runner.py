@@ -31,7 +31,7 @@ from invglare.bench.cases import CASES as STATIC_CASES
 from invglare.bench.cases import Case
 from invglare.bench.fit import FIT_CASES
 from invglare.bench.sample import SAMPLE_CASES
-from invglare.bench.temporal_cases import TEMPORAL_CASES
+from invglare.bench.temporal_cases import TEMPORAL_CASES, stage_markdown
 from invglare.bench.timing import load_1m, measure
 from invglare.bench.veiling_cases import VEILING_CASES
 from invglare.errors import ConfigError
@@ -49,10 +49,10 @@ CASES: tuple[Case, ...] = (*STATIC_CASES, *TEMPORAL_CASES, *VEILING_CASES)
 
 #: Header notes of bench.md (also in bench.json's meta).
 NOTES = (
-    "JAX's CPU FFT (ducc) runs on one thread (jax issue #14664, "
-    "https://github.com/jax-ml/jax/issues/14664), while the scipy and pyfftw floors use 2 "
-    "threads: the `fft_jax` row shows what that costs here, and `vs jax fft` compares each "
-    "case with JAX's own bare FFT of the same size instead of the floor.",
+    "JAX's CPU FFT (ducc, in XLA's thread pool) uses both cores here, as the scipy and "
+    "pyfftw floors do (see the `cpu/wall` of the `fft_jax` rows); the floor is the faster "
+    "library at each size, and `vs jax fft` compares each case with JAX's own bare FFT of "
+    "the same size.",
     "The machine is shared: `load` is the 1-minute load average when the case was timed "
     "(2 cores; above 2, other processes competed for them) and `cpu/wall` the process's CPU "
     "time over wall time while timing (below 1: the case waited for a core). Ratios compare "
@@ -338,6 +338,8 @@ def render_markdown(records: list[dict], meta: dict, fit_records: list[dict] | N
                 f"| {_num(r.get('first_call_s'), '.2f')} | {r.get('repeats', '')} "
                 f"| {_num(r.get('cpu_per_wall'), '.2f')} | {_num(r.get('load_1m'), '.1f')} |"
             )
+        stages = stage_markdown(records)
+        lines += ["", *stages] if stages else []
         lines += ["", "Cases:", ""]
         descriptions = {r["case"]: r.get("description", "") for r in records}
         lines += [f"- `{name}`: {descriptions[name]}" for name in names]

@@ -27,6 +27,13 @@ frame) is computed before timing; everything a frame needs is timed:
   grid, as a texture-based GPU pipeline does (light leaving one edge re-enters at the
   other).
 
+Where a frame's time goes is timed stage by stage (``temporal_stage_*``, each stage
+jitted alone on the previous stage's output; their sum can differ a little from the frame,
+which XLA compiles as one program): the dynamics step and the aperture, the monochrome
+PSF (``E``, FFT, normalisation), the 32 scaled copies into RGB, the convolution
+(transform of the PSF, product with the frame's stored spectrum, inverse transform) and
+the tone map. :func:`stage_markdown` tabulates them beside the frame.
+
 Sizes above 1024 are skipped (the paper stops there).
 """
 
@@ -35,6 +42,15 @@ from __future__ import annotations
 import numpy as np
 
 from invglare.bench.cases import Case
+
+#: The stages of ``temporal_frame``, in order: case-name suffix and what it times.
+STAGES = (
+    ("aperture", "dynamics step + moving aperture"),
+    ("mono_psf", "Fresnel term, FFT, monochrome PSF"),
+    ("copies", "32 scaled copies into linear RGB"),
+    ("convolve", "PSF transform, product, inverse transform"),
+    ("tonemap", "gamma 2.2"),
+)
 
 #: Ritschel et al. (2009) Table 2, overall ms per PSF (no convolution), by size.
 PAPER_TABLE2_MS = {256: 9.0, 512: 18.4, 1024: 55.1}
@@ -91,6 +107,80 @@ def _frame_case(wrap: bool):
     return make
 
 
+def _stage_case(stage: str):
+    def make(n: int):
+        if n > _MAX_N:
+            return None
+        import equinox as eqx
+        import jax
+        import jax.numpy as jnp
+
+        from invglare.render.temporal_frames import display, frame_convolver
+
+        model = _model(n)
+        rng = np.random.default_rng(3)
+        image = jnp.asarray(rng.random((n, n, 3)) * 10.0, jnp.float32)
+        consts = eqx.filter_jit(lambda m: m.sequence_constants())(model)
+        spectrum = eqx.filter_jit(lambda m, i: frame_convolver(m, i, None, False)[0])(model, image)
+        state = model.init_state(1.0)
+
+        def aperture(m, c, s):
+            return m.advance(s, 1.0), m._aperture(c, m.frame_values(s))
+
+        def convolve(m, spec, psf):  # as in temporal_frame: the frame's spectrum is stored
+            return frame_convolver(m, image, None, False)[1](spec, psf)
+
+        # Each stage: (model, what it needs besides its input, the previous stage's output).
+        steps = {
+            "aperture": (aperture, consts),
+            "mono_psf": (lambda m, c, ap: m._mono_psf(c, ap), consts),
+            "copies": (lambda m, _, mono: m._spectral_cf(mono), None),
+            "convolve": (convolve, spectrum),
+            "tonemap": (lambda m, _, linear: display(m, linear), None),
+        }
+        value = state
+        for name, _ in STAGES:  # run the stages before this one once, for its input
+            fn, aux = eqx.filter_jit(steps[name][0]), steps[name][1]
+            if name == stage:
+                return lambda: fn(model, aux, value)
+            value = fn(model, aux, value)
+            value = value[1] if name == "aperture" else jax.block_until_ready(value)
+        raise AssertionError(stage)
+
+    return make
+
+
+def stage_markdown(records: list[dict]) -> list[str]:
+    """bench.md's table of a temporal frame's stages (ms, share of their sum), per N."""
+    by_key = {(r["case"], r["size"]): r["median_ms"] for r in records}
+    sizes = sorted({n for (case, n) in by_key if case.startswith("temporal_stage_")})
+    if not sizes:
+        return []
+    names = [name for name, _ in STAGES]
+    lines = [
+        "## Temporal frame: where the time goes",
+        "",
+        "Each stage jitted alone (`temporal_stage_*`), median ms and share of the stages' "
+        "sum; `temporal_frame` is the whole frame as one program.",
+        "",
+        "| N | " + " | ".join(names) + " | sum | temporal_frame |",
+        "|---:|" + "---:|" * (len(names) + 2),
+    ]
+    for n in sizes:
+        times = [by_key.get((f"temporal_stage_{name}", n)) for name in names]
+        total = sum(t for t in times if t is not None)
+        cells = [f"{t:.1f} ({100 * t / total:.0f} %)" if t else "" for t in times]
+        frame = by_key.get(("temporal_frame", n))
+        lines.append(
+            f"| {n} | "
+            + " | ".join(cells)
+            + f" | {total:.1f} | "
+            + (f"{frame:.1f}" if frame else "")
+            + " |"
+        )
+    return lines
+
+
 TEMPORAL_CASES: tuple[Case, ...] = (
     Case(
         "temporal_psf",
@@ -111,5 +201,14 @@ TEMPORAL_CASES: tuple[Case, ...] = (
         "pipeline",
         "temporal_frame with circular (unpadded, GPU-texture-like) convolution",
         _frame_case(wrap=True),
+    ),
+    *(
+        Case(
+            f"temporal_stage_{name}",
+            "pipeline",
+            f"temporal_frame stage: {what} (jitted alone)",
+            _stage_case(name),
+        )
+        for name, what in STAGES
     ),
 )

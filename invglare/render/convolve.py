@@ -30,11 +30,13 @@ from invglare.optics.sampling import check_positive
 from invglare.optics.spectral import scale_psf
 
 __all__ = [
+    "centre_phase",
     "check_compatible_scales",
     "convolve_psf",
     "crop_psf_reach",
     "fft_size",
     "linear_period",
+    "reach_shape",
     "resample_psf",
     "wrap_psf",
 ]
@@ -88,6 +90,11 @@ def linear_period(n_image: int, n_psf: int) -> int:
     return fft_size(n_image + max(_reach(n_image, n_psf)))
 
 
+def reach_shape(height: int, width: int, h: int, w: int) -> tuple[int, int]:
+    """The shape :func:`crop_psf_reach` leaves of an `h` x `w` PSF for such an image."""
+    return sum(_reach(height, h)) + 1, sum(_reach(width, w)) + 1
+
+
 def crop_psf_reach(psf: Float[Array, "c h w"], height: int, width: int) -> Float[Array, "c m n"]:
     """A channels-first PSF without the rows and columns that reach past an image's extent.
 
@@ -126,6 +133,20 @@ def wrap_psf(psf: Float[Array, "c h w"], p: int, q: int) -> Float[Array, "c p q"
     rows = (jnp.arange(h) - h // 2) % p
     cols = (jnp.arange(w) - w // 2) % q
     return jnp.zeros((c, p, q), psf.dtype).at[:, rows[:, None], cols[None, :]].add(psf)
+
+
+def centre_phase(p: int, q: int, h: int, w: int) -> np.ndarray:
+    """The `rfft2` factor that does :func:`wrap_psf`'s roll: the PSF's centre to (0, 0).
+
+    An ``h`` x ``w`` PSF zero-padded at the corner of a `p` x `q` grid has its centre at
+    ``(h // 2, w // 2)``; its spectrum times this factor (the shift theorem) is the
+    spectrum of the wrapped PSF. Multiplied into a spectrum the product forms anyway, it
+    replaces two copies of every PSF (the roll); a frame's stored spectrum can carry it
+    once for a whole sequence. `complex128`, shape ``(p, q // 2 + 1)``.
+    """
+    rows = np.exp(2j * np.pi * (np.arange(p) * (h // 2) % p) / p)
+    cols = np.exp(2j * np.pi * (np.arange(q // 2 + 1) * (w // 2) % q) / q)
+    return rows[:, None] * cols[None, :]
 
 
 def convolve_psf(
@@ -185,7 +206,12 @@ def convolve_psf(
         p, q = linear_period(hh, h), linear_period(ww, w)
     else:
         p, q = hh, ww
-    spectrum = jnp.fft.rfft2(img, s=(p, q)) * jnp.fft.rfft2(wrap_psf(ker, p, q))
+    spectrum = jnp.fft.rfft2(img, s=(p, q))
+    if ker.shape[1] <= p and ker.shape[2] <= q:
+        phase = jnp.asarray(centre_phase(p, q, *ker.shape[1:]), spectrum.dtype)
+        spectrum = spectrum * (jnp.fft.rfft2(materialise(ker), s=(p, q)) * phase)
+    else:
+        spectrum = spectrum * jnp.fft.rfft2(wrap_psf(ker, p, q))
     out = jnp.fft.irfft2(spectrum, s=(p, q))[:, :hh, :ww]
     if image.ndim == 2 and psf.ndim == 2:
         return out[0]

@@ -29,7 +29,14 @@ from jaxtyping import Array, ArrayLike, Float
 from invglare.dynamics import DynamicsState
 from invglare.errors import ConfigError, InputDataError
 from invglare.models.temporal import TemporalGlare, check_n_frames, frame_luminance_cd_m2
-from invglare.render.convolve import crop_psf_reach, linear_period, resample_psf, wrap_psf
+from invglare.optics.fourier import materialise
+from invglare.render.convolve import (
+    centre_phase,
+    crop_psf_reach,
+    linear_period,
+    reach_shape,
+    resample_psf,
+)
 from invglare.render.tonemap import tonemap
 
 __all__ = [
@@ -118,13 +125,18 @@ def frame_convolver(
         p, q = height, width
     else:
         p, q = linear_period(height, n_psf), linear_period(width, n_psf)
+    # The PSF as convolved (cropped to its reach unless wrapped) is padded at the grid's
+    # corner; the frame's spectrum carries the shift that centres it, once per sequence.
+    kept = (n_psf, n_psf) if wrap else reach_shape(height, width, n_psf, n_psf)
     planes = image[None] if image.ndim == 2 else jnp.moveaxis(image, -1, 0)
     spectrum = jnp.fft.rfft2(planes, s=(p, q))
+    spectrum = spectrum * jnp.asarray(centre_phase(p, q, *kept), spectrum.dtype)
 
     def glare(spectrum: Array, psf_cf: Array) -> Array:
         ker = psf_for_frame(model, psf_cf, image_scale_deg, size)
-        ker = wrap_psf(ker if wrap else crop_psf_reach(ker, height, width), p, q)
-        out = jnp.fft.irfft2(spectrum * jnp.fft.rfft2(ker), s=(p, q))[:, :height, :width]
+        ker = materialise(ker if wrap else crop_psf_reach(ker, height, width))
+        out = jnp.fft.irfft2(spectrum * jnp.fft.rfft2(ker, s=(p, q)), s=(p, q))
+        out = out[:, :height, :width]
         return out[0] if image.ndim == 2 else jnp.moveaxis(out, 0, -1)
 
     return spectrum, glare
