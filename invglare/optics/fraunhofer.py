@@ -30,9 +30,15 @@ from invglare.optics.sampling import AngularGrid, ApertureGrid, nm_to_mm, rad_to
 _TINY_POWER = 1e-30
 
 
+def abs2(z: Inexact[Array, "*shape"]) -> Float[Array, "*shape"]:
+    """``|z|^2`` as ``re^2 + im^2``: `jnp.abs` takes a square root that the square undoes
+    (the 512² intensity spent a fifth of its time there)."""
+    return z.real**2 + z.imag**2 if jnp.iscomplexobj(z) else z**2
+
+
 def transmitted_power(field: Inexact[Array, "n n"], pitch_mm: ArrayLike) -> Float[Array, ""]:
     """Power through the aperture, ``sum |t|^2 * pitch^2`` (mm^2 for unit incident intensity)."""
-    return jnp.sum(jnp.abs(field) ** 2) * jnp.asarray(pitch_mm) ** 2
+    return jnp.sum(abs2(field)) * jnp.asarray(pitch_mm) ** 2
 
 
 def _checkerboard(n: int, dtype) -> Float[Array, "n n"]:
@@ -65,21 +71,23 @@ def intensity_fft(
         raise ValueError(f"out_npix ({out_npix}) must not exceed fft_npix ({fft_npix})")
     if fft_npix > n:
         field = materialise(field)
-    norm = jnp.maximum(jnp.sum(jnp.abs(field) ** 2), _TINY_POWER) * fft_npix**2
+    norm = jnp.maximum(jnp.sum(abs2(field)), _TINY_POWER) * fft_npix**2
     if fft_npix % 2 == 0:
         real_dtype = jnp.real(field).dtype
         modulated = field * _checkerboard(n, real_dtype)
         if jnp.iscomplexobj(field):
             spectrum = jnp.fft.fft2(modulated, s=(fft_npix, fft_npix))
-            full = jnp.abs(spectrum) ** 2 / norm
+            full = abs2(spectrum) / norm
         else:
             # Normalised before the mirror: the gradient's sum over the output for the
             # normalisation then runs over the half plane (a 10 % faster 512² gradient).
+            # The half is put in memory first: fused into the mirror, the squared modulus
+            # was computed element by element in reverse order (0.5 ms of a 1.9 ms 512² PSF).
             half = jnp.fft.rfft2(modulated, s=(fft_npix, fft_npix))
-            full = _hermitian_full(jnp.abs(half) ** 2 / norm, fft_npix)
+            full = _hermitian_full(materialise(abs2(half) / norm), fft_npix)
     else:
         spectrum = jnp.fft.fftshift(jnp.fft.fft2(field, s=(fft_npix, fft_npix)))
-        full = jnp.abs(spectrum) ** 2 / norm
+        full = abs2(spectrum) / norm
     return crop_centred(full, out_npix)
 
 
@@ -108,10 +116,10 @@ def fraunhofer_mft(
     lam_mm = nm_to_mm(wavelength_nm)
     freqs = output.coords_rad() / lam_mm
     amplitude = mft2(field, grid.coords_mm(), freqs, freqs)
-    power = jnp.maximum(jnp.sum(jnp.abs(field) ** 2), _TINY_POWER)
+    power = jnp.maximum(jnp.sum(abs2(field)), _TINY_POWER)
     # |pitch^2 * DFT|^2 * (dtheta / lambda)^2 / (power * pitch^2)
     scale = (grid.pitch_mm * output.pixel_scale_rad / lam_mm) ** 2
-    return jnp.abs(amplitude) ** 2 * (scale / power)
+    return abs2(amplitude) * (scale / power)
 
 
 def far_field_amplitude_mft(
