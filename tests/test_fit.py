@@ -352,6 +352,19 @@ def test_saturation_mask_and_censored_likelihood():
     assert float(obs.log_likelihood(photo, e_dim)) < float(
         obs.log_likelihood(photo, e_dim, censoring="exclude")
     )
+    # The survival term at precomputed indices (a fixed photo, as in sampling) is the same,
+    # with and without a mask that drops some of the clipped pixels.
+    drop = np.zeros(sat.shape, bool)
+    drop[tuple(np.argwhere(sat)[0])] = True
+    for mask in (None, ~drop):
+        at = obs.censored_indices(photo, mask)
+        assert len(at) == sat.sum() - (0 if mask is None else 1)
+        for model in (expected, e_dim):
+            np.testing.assert_allclose(
+                float(obs.log_likelihood(photo, model, mask=mask, censored=at)),
+                float(obs.log_likelihood(photo, model, mask=mask)),
+                rtol=1e-12,
+            )
 
 
 # --------------------------------------------------------------------------------------

@@ -85,7 +85,7 @@ import h5py
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, ArrayLike, Bool, Float
+from jaxtyping import Array, ArrayLike, Bool, Float, Int
 from scipy.special import ndtr
 
 from invglare.errors import ConfigError, InputDataError, NumericalError
@@ -207,6 +207,8 @@ class LogPosterior(eqx.Module):
     target: Float[Array, "h w"]
     mask: Bool[Array, "h w"] | None
     residual_fn: ResidualFn | None
+    #: Flat indices of the target's saturated pixels in use (see `Observation.log_likelihood`).
+    censored: Int[Array, " k"] | None
     censoring: str = eqx.field(static=True, default="survival")
     likelihood: str = eqx.field(static=True, default="pixels")
     residual_scale: float = eqx.field(static=True, default=1.0)
@@ -219,7 +221,7 @@ class LogPosterior(eqx.Module):
         fwd = self.space.apply(self.forward, self.space.from_latent(latent))
         expected = fwd.expected()
         return fwd.obs.log_likelihood(
-            self.target, expected, censoring=self.censoring, mask=self.mask
+            self.target, expected, censoring=self.censoring, mask=self.mask, censored=self.censored
         )
 
     def log_prior(self, latent: Float[Array, " p"]) -> Float[Array, ""]:
@@ -301,6 +303,7 @@ def make_log_posterior(
         target=_float64(tgt),
         mask=m,
         residual_fn=residual_fn,
+        censored=jnp.asarray(forward_template.obs.censored_indices(tgt, m), jnp.int32),
         censoring=censoring,
         likelihood=likelihood,
         residual_scale=float(residual_scale),
@@ -322,7 +325,10 @@ def fingerprint(log_posterior: LogPosterior) -> str:
     h = hashlib.sha256()
     h.update(f"{log_posterior.likelihood}|{log_posterior.censoring}|".encode())
     h.update("|".join(log_posterior.space.paths).encode())
-    for leaf in jax.tree_util.tree_leaves(eqx.filter(log_posterior, eqx.is_array)):
+    # The censored indices follow from the target, mask and clip level: not hashed, so
+    # that chains stored before they existed keep their fingerprint.
+    data = eqx.tree_at(lambda lp: lp.censored, log_posterior, None, is_leaf=lambda x: x is None)
+    for leaf in jax.tree_util.tree_leaves(eqx.filter(data, eqx.is_array)):
         if jax.dtypes.issubdtype(leaf.dtype, jax.dtypes.prng_key):  # a model's random draw
             leaf = jax.random.key_data(leaf)
         a = np.ascontiguousarray(np.asarray(leaf))
