@@ -101,9 +101,11 @@ def frame_convolver(
 
     The PSF the function takes is channels first, at the model's own scale (as
     :meth:`~invglare.models.temporal.TemporalGlare.psf_cf` gives it). The convolution is
-    :func:`invglare.render.convolve.convolve_psf`'s (zero padding to a fast size unless
-    `wrap`), split so that a still frame is transformed once per sequence rather than once
-    per frame.
+    :func:`invglare.render.convolve.convolve_psf`'s (zero padding to
+    :func:`~invglare.render.convolve.linear_period` unless `wrap`), split so that a still
+    frame is transformed once per sequence rather than once per frame; the stored spectrum
+    includes :func:`~invglare.render.convolve.centre_phase`, so each frame's PSF is only
+    padded, not rolled.
 
     **Raises:** `InputDataError` for a frame of the wrong shape, a monochrome frame with a
     spectral model, or `wrap` with a PSF larger than the frame.
