@@ -16,6 +16,7 @@ Speed is only ever reported as ratios of times measured in the same run, never a
 from __future__ import annotations
 
 import datetime as dt
+import gc
 import logging
 import os
 import platform
@@ -95,6 +96,20 @@ def select(patterns: list[str], skip: list[str] | None = None) -> tuple[list[Cas
     return cases, fits
 
 
+def release_programs() -> None:
+    """Drop JAX's compiled programs (and with them their machine code).
+
+    XLA's CPU backend maps memory for every function it compiles: a temporal frame holds
+    about 1 500 maps. A whole benchmark run compiled enough programs to pass the kernel's
+    limit of 65 530 maps per process (``vm.max_map_count``) and crashed in LLVM ("Cannot
+    allocate memory"). Each case compiles its own programs anyway, so none are reused.
+    """
+    import jax
+
+    jax.clear_caches()
+    gc.collect()
+
+
 def _meta() -> dict[str, Any]:
     import jax
 
@@ -169,6 +184,9 @@ def run_bench(
             log.error("bench case %s at N=%d failed:\n%s", case.name, n, traceback.format_exc())
             failed.append(f"{case.name} (N={n}): {type(err).__name__}: {err}")
             continue
+        finally:
+            fn = None
+            release_programs()
         records.append(
             {
                 "case": case.name,
@@ -202,6 +220,8 @@ def run_bench(
         except Exception as err:
             log.error("benchmark %s failed:\n%s", name, traceback.format_exc())
             failed.append(f"{name}: {type(err).__name__}: {err}")
+        finally:
+            release_programs()
         save_partial()
 
     meta["load_1m_end"] = load_1m()
