@@ -81,21 +81,31 @@ def _psf_case(n: int):
     return lambda: frame(model, constants, state)
 
 
+def _frame_inputs(n: int, wrap: bool):
+    """The night eye, a random N x N RGB frame, the sequence constants, the frame's stored
+    spectrum and a resting state: what a frame of an animation starts from."""
+    import equinox as eqx
+    import jax.numpy as jnp
+
+    from invglare.render.temporal_frames import frame_convolver
+
+    model = _model(n)
+    rng = np.random.default_rng(3)
+    image = jnp.asarray(rng.random((n, n, 3)) * 10.0, jnp.float32)
+    constants = eqx.filter_jit(lambda m: m.sequence_constants())(model)
+    spectrum = eqx.filter_jit(lambda m, i: frame_convolver(m, i, None, wrap)[0])(model, image)
+    return model, image, constants, spectrum, model.init_state(1.0)
+
+
 def _frame_case(wrap: bool):
     def make(n: int):
         if n > _MAX_N:
             return None
         import equinox as eqx
-        import jax.numpy as jnp
 
         from invglare.render.temporal_frames import display, frame_convolver
 
-        model = _model(n)
-        rng = np.random.default_rng(3)
-        image = jnp.asarray(rng.random((n, n, 3)) * 10.0, jnp.float32)
-        constants = eqx.filter_jit(lambda m: m.sequence_constants())(model)
-        spectrum = eqx.filter_jit(lambda m, i: frame_convolver(m, i, None, wrap)[0])(model, image)
-        state = model.init_state(1.0)
+        model, image, constants, spectrum, state = _frame_inputs(n, wrap)
 
         @eqx.filter_jit
         def frame(m, c, s, spec, img):
@@ -113,16 +123,10 @@ def _stage_case(stage: str):
             return None
         import equinox as eqx
         import jax
-        import jax.numpy as jnp
 
         from invglare.render.temporal_frames import display, frame_convolver
 
-        model = _model(n)
-        rng = np.random.default_rng(3)
-        image = jnp.asarray(rng.random((n, n, 3)) * 10.0, jnp.float32)
-        consts = eqx.filter_jit(lambda m: m.sequence_constants())(model)
-        spectrum = eqx.filter_jit(lambda m, i: frame_convolver(m, i, None, False)[0])(model, image)
-        state = model.init_state(1.0)
+        model, image, consts, spectrum, state = _frame_inputs(n, wrap=False)
 
         def aperture(m, c, s):
             return m.advance(s, 1.0), m._aperture(c, m.frame_values(s))
