@@ -619,3 +619,47 @@ def test_grating_patches_fill_their_annulus_uniformly_in_area():
     # Uniform in area: half the patches inside the radius that halves the annulus's area.
     half = math.sqrt(0.5 * (0.6**2 + 1.3**2))
     assert abs(np.mean(rho < half) - 0.5) < 0.08
+
+
+def test_stamp_windows_also_hold_the_largest_of_other_values():
+    """`also=`: windows sized for the largest element over several parameter values.
+
+    With them, the eye at the larger sizes transmits exactly what it does with generous
+    windows (1e-12); the windows of the current sizes alone (headroom 1) cut its elements,
+    which is what the comparison would catch.
+    """
+    with helpers.x64():
+        _check_stamp_windows_also()
+
+
+def _check_stamp_windows_also():
+    grid = _grid()
+    eye = _small_eye()
+
+    def grown(e):
+        e = eqx.tree_at(lambda a: a.upper_lashes.length_mm, e, 2.0 * e.upper_lashes.length_mm)
+        e = eqx.tree_at(
+            lambda a: a.particles[0].radius_mean_mm, e, 2.0 * e.particles[0].radius_mean_mm
+        )
+        return eqx.tree_at(lambda a: a.gratings.line_length_mm, e, 1.6 * e.gratings.line_length_mm)
+
+    big = grown(eye)
+    fitted = eye.with_stamp_windows(grid, headroom=1.0, also=[big])
+    tight = eye.with_stamp_windows(grid, headroom=1.0)
+    generous = big.with_stamp_windows(grid, headroom=3.0)
+    for name in ("upper_lashes", "gratings"):
+        assert getattr(fitted, name).stamp_half_px > getattr(tight, name).stamp_half_px
+    assert fitted.particles[0].stamp_half_px > tight.particles[0].stamp_half_px
+    # The current sizes are held too: the larger of the two, slot by slot.
+    assert fitted.lower_lashes.stamp_half_px == tight.lower_lashes.stamp_half_px
+    expected = np.asarray(generous.transmission(grid))
+    np.testing.assert_allclose(np.asarray(grown(fitted).transmission(grid)), expected, atol=1e-12)
+    assert np.max(np.abs(np.asarray(grown(tight).transmission(grid)) - expected)) > 1e-3
+    # At the current sizes, tighter windows change nothing.
+    np.testing.assert_allclose(
+        np.asarray(tight.transmission(grid)),
+        np.asarray(eye.with_stamp_windows(grid, headroom=3.0).transmission(grid)),
+        atol=1e-12,
+    )
+    with pytest.raises(ConfigError, match="same eye"):
+        eye.with_stamp_windows(grid, also=[dataclasses.replace(eye, particles=())])

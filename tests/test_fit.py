@@ -4,6 +4,7 @@ Everything runs in float64 (the fits' recommended precision). Images are 63-64 p
 that the compiled solves stay small; tolerances are in the test names or docstrings.
 """
 
+import dataclasses
 import json
 import math
 
@@ -714,3 +715,64 @@ def test_jacobian_by_columns_equals_jacfwd_under_jit_and_vmap_1e12():
         zs = jnp.stack([z, 2 * z])
         batched = jax.vmap(jax.jacfwd(wrapped), in_axes=(0, None))(zs, 2.0)
         np.testing.assert_allclose(batched[1], jax.jacfwd(fn)(2 * z, 2.0), rtol=1e-12)
+
+
+def _daylight_eye_forward(npix: int = 64) -> Forward:
+    from pathlib import Path
+
+    from invglare.io.config import load_toml
+    from invglare.io.model_config import build_model
+
+    config = load_toml(Path(__file__).resolve().parents[1] / "examples" / "eye_daylight.toml")
+    config["model"]["aperture_npix"] = npix
+    config["output"]["npix"] = npix
+    obs = Observation(flux=1e6, background=10.0, gain=2.0, read_noise=3.0)
+    return Forward(build_model(config), obs)
+
+
+def test_fit_sizes_stamp_windows_by_the_bounds_and_changes_no_residual_1e12():
+    """A fit's eye gets the smallest stamp windows its free parameters' bounds allow.
+
+    Free count and diameter (no size free): windows tighter than the model's own (built
+    with 1.5x headroom), residuals equal to 1e-12. A free lash length: windows sized for
+    its upper bound, so the eye there transmits what it does with generous windows. An
+    unbounded size, or a free grid, keeps the model's windows.
+    """
+    from invglare.fit.windows import fit_stamp_windows
+
+    lashes = "model.aperture.upper_lashes"
+    with x64():
+        fwd = _daylight_eye_forward()
+        target = np.asarray(eqx.filter_jit(lambda f: f())(fwd))
+        space = ParameterSpace(
+            [
+                Parameter("model.aperture.pupil.diameter_mm", 2.0, 4.5, init=3.0),
+                Parameter(f"{lashes}.count", 30.0, 47.5, init=40.0),
+            ],
+            nuisance=[Parameter("obs.flux", 0.0, math.inf, init=1e6)],
+        )
+        built = fwd.model.aperture.upper_lashes.stamp_half_px
+        fn = make_residual_fn(space, fwd, target, {"pixels": 1.0})
+        assert fn.forward.model.aperture.upper_lashes.stamp_half_px < built
+        z = space.initial_latent() + 0.1
+        as_built = dataclasses.replace(fn, forward=fwd)
+        np.testing.assert_allclose(fn(z), as_built(z), rtol=0, atol=1e-12)
+
+        longer = ParameterSpace([Parameter(f"{lashes}.length_mm", 2.0, 5.0, init=2.5)])
+        sized = fit_stamp_windows(longer, fwd).model.aperture.upper_lashes.stamp_half_px
+        grid = fwd.model.propagator.grid
+        top = longer.apply(fwd, [5.0]).model.aperture
+        assert sized > built
+        assert sized == top.with_stamp_windows(grid, 1.0).upper_lashes.stamp_half_px
+        at_top = longer.apply(fit_stamp_windows(longer, fwd), [5.0]).model.aperture
+        generous = top.with_stamp_windows(grid, 3.0)
+        np.testing.assert_allclose(
+            at_top.transmission(grid), generous.transmission(grid), rtol=0, atol=1e-12
+        )
+
+        open_ended = ParameterSpace([Parameter(f"{lashes}.length_mm", 2.0, math.inf, init=2.5)])
+        assert fit_stamp_windows(open_ended, fwd) is fwd
+        pitch = ParameterSpace(
+            [Parameter("model.propagator.grid.pitch_mm", 0.01, 0.1, init=0.0375)]
+        )
+        assert fit_stamp_windows(pitch, fwd) is fwd

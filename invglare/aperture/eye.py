@@ -188,6 +188,22 @@ def _stamp_bound(component) -> Array:
     return component.stamp_bound()
 
 
+def _stamped(eye) -> list:
+    """The eye's stamped components in a fixed order (None where absent)."""
+    return [eye.upper_lashes, eye.lower_lashes, *eye.particles, eye.gratings]
+
+
+def _with_stamped(eye, components: list):
+    """`eye` with its stamped components replaced, in the order of :func:`_stamped`."""
+    return dataclasses.replace(
+        eye,
+        upper_lashes=components[0],
+        lower_lashes=components[1],
+        particles=tuple(components[2:-1]),
+        gratings=components[-1],
+    )
+
+
 def _stamp_window(owner: str, grid: ApertureGrid, component) -> int:
     """The window half-size (px) of a stamped component (see the module docstring)."""
     if component.stamp_half_px is not None:
@@ -803,13 +819,7 @@ class EyeAperture(eqx.Module):
                 return component
             return dataclasses.replace(component, stamp_half_px=component.window_half_px(grid))
 
-        return dataclasses.replace(
-            self,
-            upper_lashes=fix(self.upper_lashes),
-            lower_lashes=fix(self.lower_lashes),
-            particles=tuple(fix(p) for p in self.particles),
-            gratings=fix(self.gratings),
-        )
+        return _with_stamped(self, [fix(c) for c in _stamped(self)])
 
     def extent_mm(self, margin_mm: float = 0.0) -> float:
         """Diameter (mm) of the disk about the axis that holds the pupil, plus `margin_mm` per side.
@@ -823,39 +833,53 @@ class EyeAperture(eqx.Module):
     # -- static stamp windows ------------------------------------------------------
 
     def with_stamp_windows(
-        self, grid: ApertureGrid | None = None, headroom: float = 1.5
+        self,
+        grid: ApertureGrid | None = None,
+        headroom: float = 1.5,
+        *,
+        also: Sequence[EyeAperture] = (),
     ) -> EyeAperture:
         """A copy whose stamp windows are fixed, for `jit` / `grad` over element sizes.
 
         Each stamped component (lashes, particles, gratings) gets ``stamp_bound_mm =
-        headroom * (current largest element half-extent)``; with a `grid` (concrete
-        pitch) also ``stamp_half_px``, which is what a `jit` with a traced grid needs.
-        Elements that later grow beyond the bound (e.g. during a fit) are cut at their
-        window's edge, so leave room with `headroom` (>= 1).
+        headroom * (largest element half-extent)``; with a `grid` (concrete pitch) also
+        ``stamp_half_px``, which is what a `jit` with a traced grid needs. Elements that
+        later grow beyond the bound (e.g. during a fit) are cut at their window's edge, so
+        leave room with `headroom` (>= 1), or pass in `also` the same eye at the other
+        parameter values it will take (e.g. the corners of a fit's bounds): the largest
+        half-extent is then taken over this eye and those, and ``headroom=1`` is safe.
+        A window only sets which pixels an element is evaluated on, so a tighter one
+        changes no value, only the cost (a stamp costs the window's area).
         """
         if not headroom >= 1.0:
             raise PhysicsRangeError(f"stamp window headroom must be >= 1, got {headroom}")
+        others = tuple(also)
+        for other in others:
+            if not isinstance(other, EyeAperture) or len(_stamped(other)) != len(_stamped(self)):
+                raise ConfigError(
+                    "with_stamp_windows(also=...) takes the same eye at other parameter "
+                    f"values, got {type(other).__name__}"
+                )
 
-        def fix(component):
-            if component is None:
-                return None
+        def bound_of(component) -> float:
             try:
-                bound = headroom * float(_stamp_bound(component))
+                return float(_stamp_bound(component))
             except jax.errors.ConcretizationTypeError as err:
                 raise ConfigError(
                     "with_stamp_windows needs concrete parameters: call it outside jit / "
                     "grad / vmap over the eye"
                 ) from err
-            half = None if grid is None else window_half_px(bound, grid.pitch_mm)
-            return dataclasses.replace(component, stamp_bound_mm=bound, stamp_half_px=half)
 
-        return dataclasses.replace(
-            self,
-            upper_lashes=fix(self.upper_lashes),
-            lower_lashes=fix(self.lower_lashes),
-            particles=tuple(fix(p) for p in self.particles),
-            gratings=fix(self.gratings),
-        )
+        fixed = []
+        for slot, component in enumerate(_stamped(self)):
+            if component is None:
+                fixed.append(None)
+                continue
+            largest = max(bound_of(c) for c in (component, *(_stamped(o)[slot] for o in others)))
+            bound = headroom * largest
+            half = None if grid is None else window_half_px(bound, grid.pitch_mm)
+            fixed.append(dataclasses.replace(component, stamp_bound_mm=bound, stamp_half_px=half))
+        return _with_stamped(self, fixed)
 
     # -- configuration -------------------------------------------------------------
 
