@@ -293,6 +293,10 @@ def test_fit_benchmark_plumbing_on_a_small_disk(tmp_path):
     json.dumps(record)  # JSON-ready as it is
     lm = record["invglare"]
     assert lm["compile_s"] > 0 and lm["solve_s"] > 0 and 1 <= lm["n_steps"] <= 3
+    # Timed warm, like scipy: the second run of the compiled solve; the first is reported.
+    assert lm["first_solve_s"] > 0 and "first run of the freshly compiled solve" in "\n".join(
+        fit_markdown(record)
+    )
     assert math.isfinite(lm["final_loss"]) and lm["jacobian_ms"] > 0
     for key in ("scipy_float64", "scipy_float32_default_step", "scipy_float32_eps32_step"):
         run = record[key]
