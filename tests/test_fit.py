@@ -768,7 +768,7 @@ def test_fit_sizes_stamp_windows_by_the_bounds_and_changes_no_residual_1e12():
     its upper bound, so the eye there transmits what it does with generous windows. An
     unbounded size, or a free grid, keeps the model's windows.
     """
-    from invglare.fit.windows import fit_stamp_windows
+    from invglare.fit.specialise import fit_stamp_windows
 
     lashes = "model.aperture.upper_lashes"
     with x64():
@@ -806,3 +806,28 @@ def test_fit_sizes_stamp_windows_by_the_bounds_and_changes_no_residual_1e12():
             [Parameter("model.propagator.grid.pitch_mm", 0.01, 0.1, init=0.0375)]
         )
         assert fit_stamp_windows(pitch, fwd) is fwd
+
+
+def test_fixed_identity_geometry_is_skipped_and_changes_nothing():
+    """A rescale by exactly 1 and a rotation by exactly 0 that no parameter frees are skipped:
+    the prediction is bit for bit the same. Free, or not neutral, they are kept."""
+    with x64():
+        psf = jnp.asarray(gaussian_blob(32, 2.5))
+        obs = Observation(flux=1e5, background=3.0, dx_px=0.3, dy_px=-0.2)
+        fixed = obs.with_fixed_geometry()
+        assert fixed.identity_steps == ("scale", "rotation")
+        np.testing.assert_array_equal(fixed.expected(psf), obs.expected(psf))
+        assert obs.with_fixed_geometry({"rotation_deg"}).identity_steps == ("scale",)
+        turned = Observation(rotation_deg=10.0, pixel_scale_ratio=1.1)
+        assert turned.with_fixed_geometry().identity_steps == ()
+        space = ParameterSpace([Parameter(DIAMETER, 2.0, 4.0, init=3.0)])
+        template = Forward(disk_model(), obs)
+        target = np.asarray(template())
+        fn = make_residual_fn(space, template, target, {"pixels": 1.0})
+        assert fn.forward.obs.identity_steps == ("scale", "rotation")
+        free_rotation = ParameterSpace(
+            [Parameter(DIAMETER, 2.0, 4.0, init=3.0)],
+            nuisance=[Parameter("obs.rotation_deg", -5.0, 5.0, init=0.0)],
+        )
+        fn = make_residual_fn(free_rotation, template, target, {"pixels": 1.0})
+        assert fn.forward.obs.identity_steps == ("scale",)

@@ -92,8 +92,8 @@ from invglare.errors import ConfigError, InputDataError, NumericalError
 from invglare.fit.observation import CENSORING, Forward, check_target
 from invglare.fit.params import ParameterSpace
 from invglare.fit.result import FitResult
+from invglare.fit.specialise import specialise_forward
 from invglare.fit.views import ResidualFn, make_residual_fn
-from invglare.fit.windows import fit_stamp_windows
 
 __all__ = [
     "MOVES",
@@ -281,7 +281,7 @@ def make_log_posterior(
             f"forward_template must be a Forward(model, obs), got {type(forward_template).__name__}"
         )
     space.check(forward_template)
-    forward_template = fit_stamp_windows(space, forward_template)
+    forward_template = specialise_forward(space, forward_template)
     check_priors(space)
     if not (math.isfinite(residual_scale) and residual_scale > 0):
         raise ConfigError(f"residual_scale must be finite and > 0, got {residual_scale!r}")

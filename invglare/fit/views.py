@@ -40,7 +40,7 @@ from jaxtyping import Array, ArrayLike, Bool, Float
 from invglare.errors import ConfigError
 from invglare.fit.observation import Forward, Observation, check_target
 from invglare.fit.params import ParameterSpace
-from invglare.fit.windows import fit_stamp_windows
+from invglare.fit.specialise import specialise_forward
 
 PIXEL_DOMAINS = ("anscombe", "pearson", "log")
 
@@ -609,7 +609,7 @@ def make_residual_fn(
             f"forward_template must be a Forward(model, obs), got {type(forward_template).__name__}"
         )
     space.check(forward_template)
-    forward_template = fit_stamp_windows(space, forward_template)
+    forward_template = specialise_forward(space, forward_template)
     if not isinstance(views, Mapping) or not views:
         raise ConfigError(f"views must be a non-empty mapping name -> weight, got {views!r}")
     options = dict(view_options or {})

@@ -1,13 +1,18 @@
-"""Stamp windows sized for a fit: as small as the free parameters' bounds allow.
+"""A forward model specialised to a fit: work the free parameters cannot change is dropped.
 
-A model built from a config fixes its eye's stamp windows with room to spare (1.5 times
-the elements' current half-extent, :meth:`~invglare.aperture.eye.EyeAperture.with_stamp_windows`),
-because it cannot know which sizes will change. A fit knows: its free parameters and their
-bounds. A stamped element costs its window's area, and in a daylight eye the lash stamps
-are most of an evaluation, so sizing the windows for the bounds instead of the headroom
-makes every residual, Jacobian and log-posterior evaluation cheaper. No value changes: a
-window only sets which pixels an element is evaluated on, and every pixel the element
-reaches stays inside it.
+A model and observation built from configs must serve any fit. A fit knows its free
+parameters and their bounds, and :func:`specialise_forward` uses that, without changing
+any value:
+
+- **stamp windows** (:func:`fit_stamp_windows`): a model built from a config fixes its
+  eye's stamp windows with room to spare (1.5 times the elements' current half-extent,
+  :meth:`~invglare.aperture.eye.EyeAperture.with_stamp_windows`). Sized for the bounds
+  instead, they are smaller: a stamped element costs its window's area, and in a daylight
+  eye the lash stamps are most of an evaluation. A window only sets which pixels an
+  element is evaluated on, and every pixel the element reaches stays inside it.
+- **identity geometry** (:meth:`~invglare.fit.Observation.with_fixed_geometry`): a
+  rescaling by exactly 1 and a rotation by exactly 0 that no parameter changes are
+  skipped.
 """
 
 from __future__ import annotations
@@ -27,6 +32,17 @@ from invglare.fit.params import ParameterSpace
 #: At most this many free aperture parameters are bounded by their box's corners (2**n
 #: evaluations of the element sizes); with more, the model's own windows are kept.
 MAX_CORNER_PARAMETERS = 8
+
+
+def specialise_forward(space: ParameterSpace, forward: Forward) -> Forward:
+    """`forward` with the stamp windows and the observation's geometry fitted to `space`.
+
+    Called by :func:`~invglare.fit.make_residual_fn` and
+    :func:`~invglare.fit.sample.make_log_posterior`; predictions are unchanged.
+    """
+    forward = fit_stamp_windows(space, forward)
+    free_obs = {p.steps[1] for p in space.all if p.steps[0] == "obs" and len(p.steps) > 1}
+    return eqx.tree_at(lambda f: f.obs, forward, forward.obs.with_fixed_geometry(free_obs))
 
 
 def fit_stamp_windows(space: ParameterSpace, forward: Forward) -> Forward:
