@@ -51,6 +51,28 @@ def test_mft_equals_fft_where_samplings_coincide_to_1e10():
         np.testing.assert_allclose(dft, centred_fft2(pad_centred(field, m)), atol=1e-9)
 
 
+@pytest.mark.parametrize("m", [96, 97])
+def test_real_field_mft_mirrors_its_half_and_equals_fft_to_1e10(m):
+    """A real field's MFT intensity is computed for one half plane and turned by 180 deg
+    (Hermitian symmetry): it equals the centred FFT's where samplings coincide, and the
+    complex path's (the same field + 0j, no symmetry used), even and odd output sizes."""
+    with x64():
+        rng = np.random.default_rng(3)
+        n, pitch, lam = 47, 0.01, 550.0
+        field = jnp.asarray(rng.random((n, n)))
+        grid = ApertureGrid(n, pitch)
+        psf_fft, scale = fraunhofer_fft(field, grid, lam, m)
+        psf_mft = fraunhofer_mft(field, grid, lam, AngularGrid(m, scale))
+        np.testing.assert_allclose(psf_mft, psf_fft, rtol=0, atol=1e-10 * float(psf_fft.max()))
+        off_grid = AngularGrid(m - 3, 0.7 * scale)
+        np.testing.assert_allclose(
+            fraunhofer_mft(field, grid, lam, off_grid),
+            fraunhofer_mft(field + 0j, grid, lam, off_grid),
+            rtol=1e-12,
+            atol=1e-15,
+        )
+
+
 def test_real_and_complex_fft_paths_agree_even_and_odd_sizes():
     rng = np.random.default_rng(1)
     field = rng.random((30, 30)).astype(np.float32)
