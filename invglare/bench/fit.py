@@ -292,14 +292,10 @@ def run_fit_benchmark(
         starts = space.as_dict(space.from_latent(space.initial_latent()))
 
         # --- invglare LM, float64 -------------------------------------------------------
-        # Run twice: the first run compiles and is the compiled program's first execution
-        # (slower: fresh buffers and code pages); the second hits the compile cache and is
-        # timed warm, like scipy's residual below (compiled, then evaluated 10 times first).
-        runs = []
-        for _ in range(2):
+        def run_lm():
             stamps: list[tuple[float, float]] = []
 
-            def progress(p: FitProgress, stamps=stamps) -> None:
+            def progress(p: FitProgress) -> None:
                 stamps.append((time.perf_counter(), p.loss))
 
             res = fit(
@@ -312,8 +308,13 @@ def run_fit_benchmark(
                 truth=truth,
                 progress=progress,
             )
-            runs.append(res)
-        first = runs[0]
+            return res, stamps
+
+        # The first run compiles and is the compiled program's first execution (slower:
+        # fresh buffers and code pages); the second hits the compile cache and is timed
+        # warm, like scipy's residual below (compiled, then evaluated 10 times first).
+        first, _ = run_lm()
+        res, stamps = run_lm()
         fn = make_residual_fn(space, template, target, {"pixels": 1.0})
         z_best = space.to_latent(jnp.asarray([res.values[p] for p in space.paths]))
         # The covariance step of `fit` compiled this; timing it now costs no compilation.

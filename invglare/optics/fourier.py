@@ -88,6 +88,13 @@ def mft2(
     """
     a_y = dft_matrix(coords_mm, freqs_y_per_mm)
     a_x = dft_matrix(coords_mm, freqs_x_per_mm)
+    return mft2_matrices(field, a_y, a_x)
+
+
+def mft2_matrices(
+    field: Inexact[Array, "n n"], a_y: Complex[Array, "ny n"], a_x: Complex[Array, "nx n"]
+) -> Complex[Array, "ny nx"]:
+    """:func:`mft2` with its two :func:`dft_matrix` factors given: ``a_y @ field @ a_x.T``."""
     if jnp.iscomplexobj(field):
         inner = field @ a_x.T
     else:

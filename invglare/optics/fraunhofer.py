@@ -23,7 +23,7 @@ from __future__ import annotations
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Complex, Float, Inexact
 
-from invglare.optics.fourier import crop_centred, dft_matrix, materialise, mft2
+from invglare.optics.fourier import crop_centred, dft_matrix, materialise, mft2, mft2_matrices
 from invglare.optics.sampling import AngularGrid, ApertureGrid, nm_to_mm, rad_to_deg
 
 # Guards the normalisation of an aperture that transmits nothing (e.g. a pupil of 0 mm).
@@ -140,10 +140,9 @@ def _real_field_intensity(
     """
     h = npix // 2
     a_x = dft_matrix(coords_mm, (jnp.arange(2 * h + 1) - h) * dfreq)
-    inner = (field @ a_x.real.T) + 1j * (field @ a_x.imag.T)
     # The rows fy = 0 .. h are the columns' matrix from its middle on: its exponentials,
     # a good part of the cost, are computed once.
-    block = abs2(a_x[h:] @ inner)
+    block = abs2(mft2_matrices(field, a_x[h:], a_x))
     turned = block[::-1, ::-1]
     return jnp.concatenate([turned[:h, :npix], block[: npix - h, :npix]], axis=0)
 
