@@ -171,6 +171,43 @@ def test_curved_edge_coverage_reduces_to_flat_at_zero_curvature():
     )
 
 
+def test_curved_edge_coverage_written_derivatives_match_fd_float64_1e7():
+    """The hand-written JVP against central differences (step 1e-6) in each of sd, nx, ny
+    and the curvature, at random points of every regime (flat tails, ramps, chord clipped
+    or free, convex and concave); points within 1e-4 of a kink are skipped (the function
+    is piecewise, its one-sided slopes differ there). Absolute error < 1e-7, measured
+    ~1e-10. Reverse mode and a tangent that is zero in the normal agree with it."""
+    rng = np.random.default_rng(11)
+    n = 4000
+    with helpers.x64():
+        sd = jnp.asarray(rng.uniform(-1.2, 1.2, n))
+        nx, ny = (jnp.asarray(v) for v in _random_normals(rng, n))
+        kappa = jnp.asarray(rng.uniform(-0.4, 0.4, n))
+        args = [sd, nx, ny, kappa]
+        eps = 1e-6
+        checked = 0
+        for i in range(4):
+            unit = [jnp.zeros(n)] * 4
+            unit[i] = jnp.ones(n)
+            _, jvp = jax.jvp(curved_edge_coverage, tuple(args), tuple(unit))
+
+            def at(step, i=i):
+                moved = list(args)
+                moved[i] = moved[i] + step
+                return np.asarray(curved_edge_coverage(*moved))
+
+            fd = (at(eps) - at(-eps)) / (2 * eps)
+            one_sided = (at(1e-4) - at(0.0)) / 1e-4, (at(0.0) - at(-1e-4)) / 1e-4
+            smooth = np.abs(one_sided[0] - one_sided[1]) < 1e-3
+            assert np.max(np.abs(np.asarray(jvp) - fd)[smooth]) < 1e-7, i
+            checked += int(smooth.sum())
+        assert checked > 3 * n  # most points are away from kinks
+        weights = jnp.asarray(rng.standard_normal(n))
+        rev = jax.grad(lambda s: jnp.sum(curved_edge_coverage(s, nx, ny, kappa) * weights))(sd)
+        fwd = jax.jvp(lambda s: curved_edge_coverage(s, nx, ny, kappa), (sd,), (jnp.ones(n),))[1]
+        np.testing.assert_allclose(np.asarray(rev), np.asarray(fwd * weights), atol=1e-12)
+
+
 # ---------------------------------------------------------------------------------------
 # areas against closed forms (pitch 0.05 mm, 160 x 160 pixels)
 
