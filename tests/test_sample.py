@@ -552,3 +552,18 @@ def test_sample_section_is_checked(tmp_path):
     cfg.write_text('[sample]\nmoves = "gibbs"\n')
     with pytest.raises(ConfigError, match="unknown move 'gibbs'"):
         read_sample_section(cfg)
+
+
+def test_a_reference_fit_is_refused_with_the_reason():
+    """The bundled CIE regression fit has no photo and no noise model: `invglare sample`
+    says so (exit 2, one line) instead of reporting an unknown [reference] section."""
+    from typer.testing import CliRunner
+
+    from invglare.cli import app
+
+    config = Path(__file__).resolve().parents[1] / "fits" / "cie_A50_p1.toml"
+    result = CliRunner().invoke(app, ["sample", str(config)])
+    assert result.exit_code == 2
+    assert "reference glare function" in result.output
+    assert "no likelihood to sample" in result.output
+    assert "unknown section" not in result.output

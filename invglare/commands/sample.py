@@ -88,6 +88,20 @@ def read_sample_section(config_path: Path) -> dict[str, Any]:
     return out
 
 
+def _refuse_reference_fit(config_path: Path) -> None:
+    """A reference (regression) fit has no photo and no noise model: no posterior to sample."""
+    from invglare.io.config import load_toml
+    from invglare.io.reference_fit_config import is_reference_fit
+
+    if is_reference_fit(load_toml(config_path)):
+        raise ConfigError(
+            f"{config_path} fits the eye to a reference glare function ([reference]); its "
+            "residuals are the model's misfit to a population average, not photon and read "
+            "noise, so there is no likelihood to sample; invglare sample takes a photo fit "
+            "(a [target] photo with an [observation] noise model)"
+        )
+
+
 def _best_choice(params_path: Path) -> dict[str, int]:
     """The discrete choice the stored fit chose (lowest finite loss, as ``invglare fit`` does)."""
     data = json.loads(params_path.read_text(encoding="utf-8"))
@@ -124,6 +138,7 @@ def run_sample(
     from invglare.fit.sample import sample
     from invglare.io.fit_config import load_fit
 
+    _refuse_reference_fit(Path(config))
     opts = read_sample_section(Path(config))
     if steps is not None:
         opts["steps"] = int(steps)
