@@ -31,10 +31,8 @@ from jax.scipy.ndimage import map_coordinates
 from jaxtyping import Array, ArrayLike, Float
 
 from invglare.aperture.coverage import (
+    capsule_edge_coverage,
     curved_edge_coverage,
-    sliver_integral,
-    strip_coverage,
-    tangent_chord,
 )
 from invglare.errors import ConfigError, InputDataError, PhysicsRangeError
 from invglare.optics.sampling import ApertureGrid, check_positive
@@ -401,32 +399,26 @@ class Capsule(AbstractShape):
         # Lengths in px through one scalar reciprocal, not a division per pixel.
         inv_px = 1.0 / grid.pitch_mm
         half = 0.5 * self.thickness_mm
-        sd_px = (rho - half) * inv_px
-        strip = strip_coverage(sd_px, (rho + half) * inv_px, nx, ny)
-        # Curvature correction of the round ends. The edge's curvature jumps from 0 to
-        # 1 / half where an end meets a straight side, so the deviation of the edge from the
-        # local tangent line is modelled piecewise (parabola on the arc, straight beyond its
-        # ends); both sides of the junction then see the same edge and the coverage stays
-        # continuous. Tangent coordinates below are in px along (-ny, nx).
-        t_lo, t_hi = tangent_chord(sd_px, nx, ny)
-        r_px, t_px, len_px = half * inv_px, t * inv_px, length * inv_px
-        # End pixels: the tangent point is the vertex; the near junction lies at r sin(beta)
-        # (beta = angle from the side), the far one is bounded at r (the arc's quarter).
+        # The round ends are corrected for their curvature (see `capsule_edge_coverage`).
+        # The edge's curvature jumps from 0 to 1 / half where an end meets a straight side,
+        # so the deviation of the edge from the local tangent line is modelled piecewise
+        # (parabola on the arc, straight beyond its ends); both sides of the junction then
+        # see the same edge and the coverage stays continuous. Tangent coordinates are in
+        # px along (-ny, nx); an end's near junction lies at r sin(beta) from the vertex.
+        r_px = half * inv_px
         t_near = r_px * sign * (nx * ux + ny * uy)
-        t_far = jnp.where(t_near >= 0.0, -r_px, r_px)
-        end_sliver = sliver_integral(
-            t_lo, t_hi, 0.0, jnp.minimum(t_near, t_far), jnp.maximum(t_near, t_far)
+        return capsule_edge_coverage(
+            (rho - half) * inv_px,
+            (rho + half) * inv_px,
+            nx,
+            ny,
+            r_px,
+            t * inv_px,
+            length * inv_px,
+            t_near,
+            sign,
+            at_end,
         )
-        # Side pixels: the tangent line is the side itself; along it, the start's arc begins
-        # at tangent coordinate sign * t (towards +sign) and the end's at sign * (t - L)
-        # (towards -sign); mirror the chord so that each arc lies towards +t.
-        lo_a, hi_a = jnp.minimum(sign * t_lo, sign * t_hi), jnp.maximum(sign * t_lo, sign * t_hi)
-        side_sliver = sliver_integral(lo_a, hi_a, t_px, t_px, t_px + r_px)
-        to_end = len_px - t_px
-        side_sliver = side_sliver + sliver_integral(-hi_a, -lo_a, to_end, to_end, to_end + r_px)
-        # (the floor only matters for a zero thickness reached inside a traced fit)
-        sliver = jnp.where(at_end, end_sliver, side_sliver) * (1.0 / jnp.maximum(r_px, 1e-6))
-        return jnp.clip(strip - sliver, 0.0, 1.0)
 
     def extent_radius_mm(self) -> float:
         a = float(np.hypot(*np.asarray(self.start_mm, dtype=float)))
