@@ -415,7 +415,7 @@ def _capsule_jvp(primals, tangents):
     g_side = jnp.where(at_end, 0.0, g_sliver)
 
     # the end pixels' sliver
-    _, e_lo, e_hi, _, e_1, e_2 = _sliver_partials(*end_args)
+    e_lo, e_hi, _, e_1, e_2 = _sliver_partials(*end_args)
     g_tlo, g_thi = g_end * e_lo, g_end * e_hi
     near_first = tn <= t_far
     g_e1, g_e2 = g_end * e_1, g_end * e_2
@@ -423,8 +423,8 @@ def _capsule_jvp(primals, tangents):
     g_tfar = jnp.where(near_first, g_e2, g_e1)
     g_r = g_r + jnp.where(tn >= 0.0, -g_tfar, g_tfar)
     # the side pixels' two slivers (start arc, end arc)
-    _, s_lo, s_hi, s_0, s_1, s_2 = _sliver_partials(*start_args)
-    _, q_lo, q_hi, q_0, q_1, q_2 = _sliver_partials(*end_side_args)
+    s_lo, s_hi, s_0, s_1, s_2 = _sliver_partials(*start_args)
+    q_lo, q_hi, q_0, q_1, q_2 = _sliver_partials(*end_side_args)
     g_lo_a = g_side * (s_lo - q_hi)
     g_hi_a = g_side * (s_hi - q_lo)
     g_to_end = g_side * (q_0 + q_1 + q_2)
@@ -459,9 +459,8 @@ def _capsule_jvp(primals, tangents):
 _capsule.defjvp(_capsule_jvp, symbolic_zeros=True)
 
 
-def _sliver_partials(lo, hi, t0, t1, t2) -> tuple[Array, ...]:
-    """``sliver_integral(lo, hi, t0, t1, t2)`` and its partials in each argument."""
-    value = sliver_integral(lo, hi, t0, t1, t2)
+def _sliver_partials(lo, hi, t0, t1, t2) -> tuple[Array, Array, Array, Array, Array]:
+    """The partials of ``sliver_integral(lo, hi, t0, t1, t2)`` in each argument."""
     # the parabola between the clipped ends A, B
     a, b = jnp.clip(lo, t1, t2), jnp.clip(hi, t1, t2)
     p_a, p_b = -0.5 * (a - t0) ** 2, 0.5 * (b - t0) ** 2
@@ -485,7 +484,7 @@ def _sliver_partials(lo, hi, t0, t1, t2) -> tuple[Array, ...]:
     p_lo = p_lo + jnp.where(lo > t2, right_1, 0.0)
     p_hi = p_hi + jnp.where(hi > t2, right_2, 0.0)
     p_2 = p_2 + right_k + jnp.where(lo > t2, 0.0, right_1) + jnp.where(hi > t2, 0.0, right_2)
-    return value, p_lo, p_hi, p_0 + left_0 + right_0, p_1, p_2
+    return p_lo, p_hi, p_0 + left_0 + right_0, p_1, p_2
 
 
 def _width_adjoints(nx: Array, ny: Array, g_a: Array, g_b: Array) -> tuple[Array, Array]:

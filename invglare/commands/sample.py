@@ -62,8 +62,18 @@ def read_sample_section(config_path: Path) -> dict[str, Any]:
     """The ``[sample]`` table of a fit config, checked, with defaults filled in."""
     from invglare.fit.sample import LIKELIHOODS, parse_moves
     from invglare.io.config import Section, load_toml
+    from invglare.io.reference_fit_config import is_reference_fit
 
-    sec = Section(load_toml(config_path).get("sample", {}), "sample")
+    config = load_toml(config_path)
+    if is_reference_fit(config):
+        # No photo and no noise model: there is no posterior to sample.
+        raise ConfigError(
+            f"{config_path} fits the eye to a reference glare function ([reference]); its "
+            "residuals are the model's misfit to a population average, not photon and read "
+            "noise, so there is no likelihood to sample; invglare sample takes a photo fit "
+            "(a [target] photo with an [observation] noise model)"
+        )
+    sec = Section(config.get("sample", {}), "sample")
     out = {
         "walkers": sec.get("walkers", int, None),
         "steps": sec.get("steps", int, SAMPLE_DEFAULTS["steps"]),
@@ -86,20 +96,6 @@ def read_sample_section(config_path: Path) -> dict[str, Any]:
         if out[key] < 1:
             raise ConfigError(f"sample.{key} must be >= 1, got {out[key]}")
     return out
-
-
-def _refuse_reference_fit(config_path: Path) -> None:
-    """A reference (regression) fit has no photo and no noise model: no posterior to sample."""
-    from invglare.io.config import load_toml
-    from invglare.io.reference_fit_config import is_reference_fit
-
-    if is_reference_fit(load_toml(config_path)):
-        raise ConfigError(
-            f"{config_path} fits the eye to a reference glare function ([reference]); its "
-            "residuals are the model's misfit to a population average, not photon and read "
-            "noise, so there is no likelihood to sample; invglare sample takes a photo fit "
-            "(a [target] photo with an [observation] noise model)"
-        )
 
 
 def _best_choice(params_path: Path) -> dict[str, int]:
@@ -138,7 +134,6 @@ def run_sample(
     from invglare.fit.sample import sample
     from invglare.io.fit_config import load_fit
 
-    _refuse_reference_fit(Path(config))
     opts = read_sample_section(Path(config))
     if steps is not None:
         opts["steps"] = int(steps)
