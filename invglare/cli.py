@@ -15,7 +15,7 @@ from typing import Annotated
 
 import typer
 
-from invglare.allocator import retain_freed_memory
+from invglare._core.allocator import retain_freed_memory
 from invglare.errors import InvglareError
 
 app = typer.Typer(
@@ -53,7 +53,7 @@ def _main(
 ) -> None:
     level = logging.ERROR if quiet else (logging.DEBUG if verbose > 1 else logging.INFO)
     logging.basicConfig(level=level, format="%(message)s", stream=sys.stderr)
-    # Before any JAX work: XLA's per-call buffers then stay mapped (see invglare.allocator).
+    # Before any JAX work: XLA's per-call buffers then stay mapped (see invglare._core.allocator).
     retain_freed_memory()
     # JAX reports every accelerator backend it did not find; that is noise on a CPU machine.
     logging.getLogger("jax._src.xla_bridge").setLevel(logging.ERROR)

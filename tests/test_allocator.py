@@ -1,4 +1,4 @@
-"""invglare.allocator: freed memory stays in the heap instead of being paged in anew."""
+"""invglare._core.allocator: freed memory stays in the heap instead of being paged in anew."""
 
 from __future__ import annotations
 
@@ -13,9 +13,9 @@ from invglare import allocator
 # faults of the second round (64 MiB is 16384 pages of 4 KiB).
 _SCRIPT = """
 import ctypes, resource, sys
-import invglare.allocator
+import invglare._core.allocator
 if sys.argv[1] == "on":
-    assert invglare.allocator.retain_freed_memory()
+    assert invglare._core.allocator.retain_freed_memory()
 libc = ctypes.CDLL(None)
 libc.malloc.restype = ctypes.c_void_p
 libc.malloc.argtypes = [ctypes.c_size_t]

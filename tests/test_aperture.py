@@ -34,7 +34,7 @@ from invglare.aperture import (
 )
 from invglare.aperture.coverage import sliver_integral
 from invglare.errors import ConfigError, InputDataError, PhysicsRangeError
-from invglare.optics.sampling import ApertureGrid
+from invglare._core.grids import ApertureGrid
 
 # ---------------------------------------------------------------------------------------
 # ground truths

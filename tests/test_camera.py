@@ -20,7 +20,7 @@ from invglare.aperture.camera import (
 )
 from invglare.errors import ConfigError, PhysicsRangeError
 from invglare.optics.propagator import Propagator
-from invglare.optics.sampling import ApertureGrid
+from invglare._core.grids import ApertureGrid
 
 LAMBDA_NM = 550.0
 

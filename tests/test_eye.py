@@ -41,7 +41,7 @@ from invglare.aperture.stamps import (
 )
 from invglare.errors import ConfigError, PhysicsRangeError
 from invglare.optics.fraunhofer import fraunhofer_fft
-from invglare.optics.sampling import ApertureGrid
+from invglare._core.grids import ApertureGrid
 
 KEY = jax.random.key(3)
 

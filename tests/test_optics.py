@@ -18,7 +18,7 @@ from invglare.optics.fraunhofer import (
     transmitted_power,
 )
 from invglare.optics.fresnel import angular_spectrum, fresnel_fft, fresnel_mft, fresnel_phase
-from invglare.optics.sampling import AngularGrid, ApertureGrid, Sampling, check_wavelengths_nm
+from invglare._core.grids import AngularGrid, ApertureGrid, Sampling, check_wavelengths_nm
 
 
 def pixel_rect(n: int, wy: int, wx: int) -> np.ndarray:

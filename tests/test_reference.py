@@ -22,7 +22,7 @@ from invglare.errors import ConfigError, InputDataError, PhysicsRangeError
 from invglare.io.exr import write_exr
 from invglare.optics.fraunhofer import fraunhofer_mft, transmitted_power
 from invglare.optics.fresnel import angular_spectrum
-from invglare.optics.sampling import AngularGrid, ApertureGrid
+from invglare._core.grids import AngularGrid, ApertureGrid
 from invglare.reference import (
     RadialTable,
     ReferenceImage,

@@ -16,7 +16,7 @@ relies on are
 Every continuous parameter is an array leaf (fit it through ``eqx.tree_at``);
 counts and configuration (number of blades, number of line sets, noise octaves)
 are static. Lengths are in mm, angles in degrees counter-clockwise from +x
-towards +y, coordinates as in :class:`~invglare.optics.sampling.ApertureGrid`.
+towards +y, coordinates as in :class:`~invglare._core.grids.ApertureGrid`.
 
 **Which diameter the f-number means.** ``focal_length_mm / f_number`` is taken
 as the diameter of the *circle of equal area* (the equivalent entrance-pupil
@@ -39,10 +39,11 @@ import numpy as np
 from jax.scipy.special import ndtri
 from jaxtyping import Array, ArrayLike, Float, UInt
 
+from invglare._core.checks import as_float, is_concrete, shown
+from invglare._core.grids import ApertureGrid, check_positive
 from invglare.aperture.coverage import strip_coverage
 from invglare.aperture.primitives import RegularPolygon
 from invglare.errors import ConfigError, PhysicsRangeError
-from invglare.optics.sampling import ApertureGrid, check_positive
 
 __all__ = [
     "CameraAperture",
@@ -58,27 +59,11 @@ __all__ = [
 # helpers
 
 
-def _float_array(x) -> Array:
-    """`jnp.asarray`, promoting integers (``f_number=2``) to the default float dtype."""
-    arr = jnp.asarray(x)
-    if not jnp.issubdtype(arr.dtype, jnp.floating):
-        arr = arr.astype(jnp.result_type(float))
-    return arr
-
-
-def _is_concrete(x) -> bool:
-    return not isinstance(x, jax.core.Tracer)
-
-
-def _shown(arr: np.ndarray) -> str:
-    return f"{arr.item():g}" if arr.size == 1 else np.array2string(arr, precision=4)
-
-
 def _check_range(
     name: str, value, lo: float, hi: float, *, lo_open: bool = False, hi_open: bool = False
 ) -> None:
     """Raise `PhysicsRangeError` unless a concrete `value` lies in the interval (ends as given)."""
-    if not _is_concrete(value):
+    if not is_concrete(value):
         return
     arr = np.asarray(value, dtype=float)
     bad = ~np.isfinite(arr)
@@ -87,13 +72,13 @@ def _check_range(
     if np.any(bad):
         left, right = "(" if lo_open else "[", ")" if hi_open else "]"
         raise PhysicsRangeError(
-            f"{name} must lie in {left}{lo:g}, {hi:g}{right}, got {_shown(arr)}"
+            f"{name} must lie in {left}{lo:g}, {hi:g}{right}, got {shown(arr)}"
         )
 
 
 def _check_finite(name: str, value) -> None:
-    if _is_concrete(value) and not np.all(np.isfinite(np.asarray(value, dtype=float))):
-        raise PhysicsRangeError(f"{name} must be finite, got {_shown(np.asarray(value))}")
+    if is_concrete(value) and not np.all(np.isfinite(np.asarray(value, dtype=float))):
+        raise PhysicsRangeError(f"{name} must be finite, got {shown(np.asarray(value))}")
 
 
 def _grid_dtype(grid: ApertureGrid):
@@ -148,7 +133,7 @@ def polygon_area_factor(n_blades: int, rounding: ArrayLike) -> Float[Array, ""]:
     ```
     """
     n = int(n_blades)
-    rounding = _float_array(rounding)
+    rounding = as_float(rounding)
     half = math.pi / n
     w = math.sin(half)  # half edge length at R = 1
     sagitta = rounding * (1.0 - math.cos(half))
@@ -190,10 +175,10 @@ class Diaphragm(eqx.Module):
     """
 
     n_blades: int = eqx.field(static=True)
-    f_number: Float[Array, ""] = eqx.field(converter=_float_array)
-    focal_length_mm: Float[Array, ""] = eqx.field(converter=_float_array)
-    rotation_deg: Float[Array, ""] = eqx.field(converter=_float_array, default=0.0)
-    rounding: Float[Array, ""] = eqx.field(converter=_float_array, default=0.0)
+    f_number: Float[Array, ""] = eqx.field(converter=as_float)
+    focal_length_mm: Float[Array, ""] = eqx.field(converter=as_float)
+    rotation_deg: Float[Array, ""] = eqx.field(converter=as_float, default=0.0)
+    rounding: Float[Array, ""] = eqx.field(converter=as_float, default=0.0)
 
     def __check_init__(self):
         n = self.n_blades
@@ -250,7 +235,7 @@ class Diaphragm(eqx.Module):
 
 
 def _angles_array(x) -> Array:
-    return jnp.atleast_1d(_float_array(x))
+    return jnp.atleast_1d(as_float(x))
 
 
 class CrossScreen(eqx.Module):
@@ -295,9 +280,9 @@ class CrossScreen(eqx.Module):
     """
 
     angles_deg: Float[Array, " sets"] = eqx.field(converter=_angles_array)
-    spacing_mm: Float[Array, ""] = eqx.field(converter=_float_array)
-    duty_cycle: Float[Array, ""] = eqx.field(converter=_float_array)
-    line_offset_mm: Float[Array, ""] = eqx.field(converter=_float_array, default=0.0)
+    spacing_mm: Float[Array, ""] = eqx.field(converter=as_float)
+    duty_cycle: Float[Array, ""] = eqx.field(converter=as_float)
+    line_offset_mm: Float[Array, ""] = eqx.field(converter=as_float, default=0.0)
 
     def __check_init__(self):
         if self.angles_deg.ndim != 1 or self.angles_deg.shape[0] == 0:
@@ -324,7 +309,7 @@ class CrossScreen(eqx.Module):
         self, grid: ApertureGrid, shift_mm: Float[ArrayLike, " 2"] = (0.0, 0.0)
     ) -> Float[Array, "sets n n"]:
         """Per-set fraction of each pixel covered by the lines, shape ``(sets, n, n)``."""
-        shift = _float_array(shift_mm)
+        shift = as_float(shift_mm)
         y, x = grid.mesh_mm()
         x = x - shift[0]
         y = y - shift[1]
@@ -452,9 +437,9 @@ class Dust(eqx.Module):
         edge_softness: float = 0.25,
         seed: int | None = None,
     ):
-        self.density = _float_array(density)
-        self.opacity = _float_array(opacity)
-        self.feature_size_mm = _float_array(feature_size_mm)
+        self.density = as_float(density)
+        self.opacity = as_float(opacity)
+        self.feature_size_mm = as_float(feature_size_mm)
         if isinstance(key, int | np.integer) and not isinstance(key, bool):
             self.seed = int(key)
             self.key = jax.random.key_data(jax.random.key(int(key)))

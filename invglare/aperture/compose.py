@@ -15,9 +15,9 @@ import equinox as eqx
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float
 
+from invglare._core.grids import ApertureGrid
 from invglare.aperture.primitives import AbstractShape
 from invglare.errors import ConfigError
-from invglare.optics.sampling import ApertureGrid
 
 
 def union(*coverages: Float[ArrayLike, "*shape"]) -> Float[Array, "*shape"]:

@@ -14,7 +14,7 @@ relative to the pupil (:meth:`EyeAperture.obstacle_transmission` with `shift_mm`
 **Units and frame.** Lengths in mm in the pupil plane, angles in degrees
 counter-clockwise from +x towards +y; the grid's origin (index ``npix // 2``) is
 the eye's axis; y points up (the upper lid is at ``y > 0``). See
-:class:`~invglare.optics.sampling.ApertureGrid`.
+:class:`~invglare._core.grids.ApertureGrid`.
 
 **Relaxed counts.** Lashes, particles and gratings are drawn as a fixed pool of
 `n_max` elements from an explicit `jax.random` key; element `i` is weighted by
@@ -49,6 +49,8 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float, Key
 
+from invglare._core.checks import as_float, as_key, check_range, choose, is_concrete
+from invglare._core.grids import ApertureGrid
 from invglare.aperture.coverage import curved_edge_coverage
 from invglare.aperture.primitives import Ellipse
 from invglare.aperture.stamps import (
@@ -58,9 +60,7 @@ from invglare.aperture.stamps import (
     window_half_px,
 )
 from invglare.dynamics.noise import normal, uniform
-from invglare.dynamics.pupil import check_range as _check_range
 from invglare.errors import ConfigError, PhysicsRangeError
-from invglare.optics.sampling import ApertureGrid
 
 #: Where a population of particles lives; see :class:`Particles`.
 REGIONS = ("cornea", "lens_nucleus", "vitreous")
@@ -77,46 +77,8 @@ _RADIUS_CLIP_SIGMA = 3.0
 # small helpers
 
 
-def _float(x) -> Array:
-    """`jnp.asarray`, promoting Python / integer values to the default float dtype."""
-    arr = jnp.asarray(x)
-    if not jnp.issubdtype(arr.dtype, jnp.floating):
-        arr = arr.astype(jnp.result_type(float))
-    return arr
-
-
-def _as_key(x) -> Key[Array, ""]:
-    """A typed PRNG key from a typed key, raw key data (``uint32[2]``) or an integer seed."""
-    if isinstance(x, int | np.integer) and not isinstance(x, bool):
-        return jax.random.key(int(x))
-    try:
-        arr = jnp.asarray(x)
-    except TypeError:
-        arr = None
-    if arr is None or isinstance(x, str):
-        raise ConfigError(
-            f"a random key must be a jax.random.key, raw uint32 key data or an int seed, got {x!r}"
-        )
-    if jnp.issubdtype(arr.dtype, jax.dtypes.prng_key):
-        return arr
-    if arr.dtype == jnp.uint32:
-        return jax.random.wrap_key_data(arr)
-    raise ConfigError(
-        f"a random key must be a jax.random.key, raw uint32 key data or an int seed, "
-        f"got {type(x).__name__} of dtype {arr.dtype}"
-    )
-
-
-def _is_concrete(x) -> bool:
-    return not isinstance(x, jax.core.Tracer)
-
-
-def _show(arr: np.ndarray) -> str:
-    return f"{arr.item():g}" if arr.size == 1 else np.array2string(arr, precision=4)
-
-
 def _check_finite(name: str, value, shape: tuple = ()) -> None:
-    if not _is_concrete(value):
+    if not is_concrete(value):
         return
     arr = np.asarray(value, dtype=float)
     if arr.shape != shape or not np.all(np.isfinite(arr)):
@@ -131,12 +93,8 @@ def _check_n_max(owner: str, n_max) -> None:
 
 
 def _check_count(owner: str, count, n_max: int) -> None:
-    _check_range(f"{owner} count", count, 0.0, float(n_max))
+    check_range(f"{owner} count", count, 0.0, float(n_max))
 
-
-def _check_choice(name: str, value, valid: Sequence[str]) -> None:
-    if value not in valid:
-        raise ConfigError(f"{name} = {value!r} is not one of {', '.join(valid)}")
 
 
 def _check_static_int(name: str, value, lo: int) -> None:
@@ -155,7 +113,7 @@ def relaxed_weights(count: Float[ArrayLike, ""], n_max: int) -> Float[Array, " n
 
     At an integer `count` = k the first k weights are 1 and the rest 0.
     """
-    count = _float(count)
+    count = as_float(count)
     return smooth_step(count - jnp.arange(n_max, dtype=count.dtype))
 
 
@@ -233,15 +191,15 @@ class Pupil(eqx.Module):
     - `decentration_mm`: (x, y) offset of the pupil centre from the eye's axis.
     """
 
-    diameter_mm: Float[Array, ""] = eqx.field(converter=_float)
-    ellipticity: Float[Array, ""] = eqx.field(converter=_float, default=0.0)
-    rotation_deg: Float[Array, ""] = eqx.field(converter=_float, default=0.0)
-    decentration_mm: Float[Array, " 2"] = eqx.field(converter=_float, default=(0.0, 0.0))
+    diameter_mm: Float[Array, ""] = eqx.field(converter=as_float)
+    ellipticity: Float[Array, ""] = eqx.field(converter=as_float, default=0.0)
+    rotation_deg: Float[Array, ""] = eqx.field(converter=as_float, default=0.0)
+    decentration_mm: Float[Array, " 2"] = eqx.field(converter=as_float, default=(0.0, 0.0))
 
     def __check_init__(self):
-        _check_range("pupil diameter_mm", self.diameter_mm, 0.0, lo_open=True, unit="mm")
-        _check_range("pupil ellipticity", self.ellipticity, 0.0, 1.0)
-        if _is_concrete(self.ellipticity) and float(self.ellipticity) >= 1.0:
+        check_range("pupil diameter_mm", self.diameter_mm, 0.0, lo_open=True, unit="mm")
+        check_range("pupil ellipticity", self.ellipticity, 0.0, 1.0)
+        if is_concrete(self.ellipticity) and float(self.ellipticity) >= 1.0:
             raise PhysicsRangeError(f"pupil ellipticity must be < 1, got {float(self.ellipticity)}")
         _check_finite("pupil rotation_deg", self.rotation_deg)
         _check_finite("pupil decentration_mm", self.decentration_mm, (2,))
@@ -282,22 +240,22 @@ class Eyelids(eqx.Module):
     completely.
     """
 
-    upper_opening_mm: Float[Array, ""] = eqx.field(converter=_float, default=4.5)
-    lower_opening_mm: Float[Array, ""] = eqx.field(converter=_float, default=4.0)
-    upper_tilt_deg: Float[Array, ""] = eqx.field(converter=_float, default=0.0)
-    lower_tilt_deg: Float[Array, ""] = eqx.field(converter=_float, default=0.0)
-    curvature_per_mm: Float[Array, ""] = eqx.field(converter=_float, default=0.04)
+    upper_opening_mm: Float[Array, ""] = eqx.field(converter=as_float, default=4.5)
+    lower_opening_mm: Float[Array, ""] = eqx.field(converter=as_float, default=4.0)
+    upper_tilt_deg: Float[Array, ""] = eqx.field(converter=as_float, default=0.0)
+    lower_tilt_deg: Float[Array, ""] = eqx.field(converter=as_float, default=0.0)
+    curvature_per_mm: Float[Array, ""] = eqx.field(converter=as_float, default=0.04)
 
     def __check_init__(self):
-        _check_range("lids upper_opening_mm", self.upper_opening_mm, 0.0, unit="mm")
-        _check_range("lids lower_opening_mm", self.lower_opening_mm, 0.0, unit="mm")
+        check_range("lids upper_opening_mm", self.upper_opening_mm, 0.0, unit="mm")
+        check_range("lids lower_opening_mm", self.lower_opening_mm, 0.0, unit="mm")
         _check_finite("lids upper_tilt_deg", self.upper_tilt_deg)
         _check_finite("lids lower_tilt_deg", self.lower_tilt_deg)
-        _check_range("lids curvature_per_mm", self.curvature_per_mm, 0.0, unit="1/mm")
+        check_range("lids curvature_per_mm", self.curvature_per_mm, 0.0, unit="1/mm")
 
     def _lid(self, lid: str) -> tuple[Array, Array, float]:
         """(opening mm, tilt rad, sign of y' in the lid frame)."""
-        _check_choice("lid", lid, LIDS)
+        choose("lid", lid, LIDS)
         if lid == "upper":
             return self.upper_opening_mm, jnp.deg2rad(self.upper_tilt_deg), 1.0
         return self.lower_opening_mm, jnp.deg2rad(self.lower_tilt_deg), -1.0
@@ -317,7 +275,7 @@ class Eyelids(eqx.Module):
         g = jnp.sqrt(1.0 + (kappa * x) ** 2)
         nx_lid, ny_lid = -kappa * x / g, -sign / g
         c, s = jnp.cos(tilt), jnp.sin(tilt)
-        shift = _float(shift_mm)
+        shift = as_float(shift_mm)
         points = jnp.stack([c * x - s * y_lid + shift[0], s * x + c * y_lid + shift[1]], -1)
         normals = jnp.stack([c * nx_lid - s * ny_lid, s * nx_lid + c * ny_lid], -1)
         return points, normals
@@ -328,7 +286,7 @@ class Eyelids(eqx.Module):
         """Fraction of each pixel covered by one lid (``"upper"`` or ``"lower"``)."""
         opening, tilt, sign = self._lid(lid)
         kappa = self.curvature_per_mm
-        shift = _float(shift_mm)
+        shift = as_float(shift_mm)
         y, x = grid.mesh_mm()
         px, py = x - shift[0], y - shift[1]
         c, s = jnp.cos(tilt), jnp.sin(tilt)
@@ -404,38 +362,38 @@ class Eyelashes(eqx.Module):
     proportional to the lash's length in pixels times the window, not to the grid area.
     """
 
-    count: Float[Array, ""] = eqx.field(converter=_float)
+    count: Float[Array, ""] = eqx.field(converter=as_float)
     n_max: int = eqx.field(static=True)
-    key: Key[Array, ""] = eqx.field(converter=_as_key)
+    key: Key[Array, ""] = eqx.field(converter=as_key)
     lid: str = eqx.field(static=True, default="upper")
-    mean_angle_deg: Float[Array, ""] = eqx.field(converter=_float, default=0.0)
-    angular_spread_deg: Float[Array, ""] = eqx.field(converter=_float, default=10.0)
-    spacing_jitter: Float[Array, ""] = eqx.field(converter=_float, default=0.5)
-    thickness_mm: Float[Array, ""] = eqx.field(converter=_float, default=0.08)
-    length_mm: Float[Array, ""] = eqx.field(converter=_float, default=3.0)
-    curvature_per_mm: Float[Array, ""] = eqx.field(converter=_float, default=0.0)
-    root_span_mm: Float[Array, ""] = eqx.field(converter=_float, default=8.0)
-    length_spread: Float[Array, ""] = eqx.field(converter=_float, default=0.2)
-    thickness_spread: Float[Array, ""] = eqx.field(converter=_float, default=0.2)
+    mean_angle_deg: Float[Array, ""] = eqx.field(converter=as_float, default=0.0)
+    angular_spread_deg: Float[Array, ""] = eqx.field(converter=as_float, default=10.0)
+    spacing_jitter: Float[Array, ""] = eqx.field(converter=as_float, default=0.5)
+    thickness_mm: Float[Array, ""] = eqx.field(converter=as_float, default=0.08)
+    length_mm: Float[Array, ""] = eqx.field(converter=as_float, default=3.0)
+    curvature_per_mm: Float[Array, ""] = eqx.field(converter=as_float, default=0.0)
+    root_span_mm: Float[Array, ""] = eqx.field(converter=as_float, default=8.0)
+    length_spread: Float[Array, ""] = eqx.field(converter=as_float, default=0.2)
+    thickness_spread: Float[Array, ""] = eqx.field(converter=as_float, default=0.2)
     segments: int = eqx.field(static=True, default=8)
     stamp_bound_mm: float | None = eqx.field(static=True, default=None)
     stamp_half_px: int | None = eqx.field(static=True, default=None)
 
     def __check_init__(self):
         owner = f"{self.lid} lashes"
-        _check_choice("lashes lid", self.lid, LIDS)
+        choose("lashes lid", self.lid, LIDS)
         _check_n_max(owner, self.n_max)
         _check_count(owner, self.count, self.n_max)
         _check_static_int(f"{owner} segments", self.segments, 1)
         _check_finite(f"{owner} mean_angle_deg", self.mean_angle_deg)
-        _check_range(f"{owner} angular_spread_deg", self.angular_spread_deg, 0.0, unit="deg")
-        _check_range(f"{owner} spacing_jitter", self.spacing_jitter, 0.0)
-        _check_range(f"{owner} thickness_mm", self.thickness_mm, 0.0, lo_open=True, unit="mm")
-        _check_range(f"{owner} length_mm", self.length_mm, 0.0, lo_open=True, unit="mm")
+        check_range(f"{owner} angular_spread_deg", self.angular_spread_deg, 0.0, unit="deg")
+        check_range(f"{owner} spacing_jitter", self.spacing_jitter, 0.0)
+        check_range(f"{owner} thickness_mm", self.thickness_mm, 0.0, lo_open=True, unit="mm")
+        check_range(f"{owner} length_mm", self.length_mm, 0.0, lo_open=True, unit="mm")
         _check_finite(f"{owner} curvature_per_mm", self.curvature_per_mm)
-        _check_range(f"{owner} root_span_mm", self.root_span_mm, 0.0, lo_open=True, unit="mm")
-        _check_range(f"{owner} length_spread", self.length_spread, 0.0, 0.999)
-        _check_range(f"{owner} thickness_spread", self.thickness_spread, 0.0, 0.999)
+        check_range(f"{owner} root_span_mm", self.root_span_mm, 0.0, lo_open=True, unit="mm")
+        check_range(f"{owner} length_spread", self.length_spread, 0.0, 0.999)
+        check_range(f"{owner} thickness_spread", self.thickness_spread, 0.0, 0.999)
 
     def _draws(self):
         dtype = _dtype_of(self.length_mm, self.thickness_mm, self.mean_angle_deg)
@@ -492,7 +450,7 @@ class Eyelashes(eqx.Module):
         self, grid: ApertureGrid, lids: Eyelids, shift_mm: ArrayLike = (0.0, 0.0)
     ) -> Float[Array, "n n"]:
         """``log`` of the lashes' transmission on `grid` (<= 0)."""
-        return _lashes_log(self, grid, lids, _float(shift_mm), self.window_half_px(grid))
+        return _lashes_log(self, grid, lids, as_float(shift_mm), self.window_half_px(grid))
 
 
 # --------------------------------------------------------------------------------------
@@ -530,27 +488,27 @@ class Particles(eqx.Module):
     decentration or the obstacle shift.
     """
 
-    count: Float[Array, ""] = eqx.field(converter=_float)
+    count: Float[Array, ""] = eqx.field(converter=as_float)
     n_max: int = eqx.field(static=True)
-    key: Key[Array, ""] = eqx.field(converter=_as_key)
+    key: Key[Array, ""] = eqx.field(converter=as_key)
     region: str = eqx.field(static=True, default="lens_nucleus")
-    radius_mean_mm: Float[Array, ""] = eqx.field(converter=_float, default=0.01)
-    radius_spread: Float[Array, ""] = eqx.field(converter=_float, default=0.3)
-    region_radius_mm: Float[Array, ""] = eqx.field(converter=_float, default=2.5)
+    radius_mean_mm: Float[Array, ""] = eqx.field(converter=as_float, default=0.01)
+    radius_spread: Float[Array, ""] = eqx.field(converter=as_float, default=0.3)
+    region_radius_mm: Float[Array, ""] = eqx.field(converter=as_float, default=2.5)
     offsets_mm: Float[Array, "n_max 2"] | None = None
     stamp_bound_mm: float | None = eqx.field(static=True, default=None)
     stamp_half_px: int | None = eqx.field(static=True, default=None)
 
     def __check_init__(self):
-        _check_choice("particles region", self.region, REGIONS)
+        choose("particles region", self.region, REGIONS)
         owner = f"{self.region} particles"
         _check_n_max(owner, self.n_max)
         if self.offsets_mm is not None:
             _check_finite(f"{owner} offsets_mm", self.offsets_mm, (self.n_max, 2))
         _check_count(owner, self.count, self.n_max)
-        _check_range(f"{owner} radius_mean_mm", self.radius_mean_mm, 0.0, lo_open=True, unit="mm")
-        _check_range(f"{owner} radius_spread", self.radius_spread, 0.0)
-        _check_range(
+        check_range(f"{owner} radius_mean_mm", self.radius_mean_mm, 0.0, lo_open=True, unit="mm")
+        check_range(f"{owner} radius_spread", self.radius_spread, 0.0)
+        check_range(
             f"{owner} region_radius_mm", self.region_radius_mm, 0.0, lo_open=True, unit="mm"
         )
 
@@ -624,14 +582,14 @@ class Gratings(eqx.Module):
     Lines are opaque capsules, stamped one by one.
     """
 
-    count: Float[Array, ""] = eqx.field(converter=_float)
+    count: Float[Array, ""] = eqx.field(converter=as_float)
     n_max: int = eqx.field(static=True)
-    key: Key[Array, ""] = eqx.field(converter=_as_key)
-    spacing_mm: Float[Array, ""] = eqx.field(converter=_float, default=0.04)
-    line_thickness_mm: Float[Array, ""] = eqx.field(converter=_float, default=0.012)
-    line_length_mm: Float[Array, ""] = eqx.field(converter=_float, default=0.3)
-    inner_radius_mm: Float[Array, ""] = eqx.field(converter=_float, default=2.0)
-    outer_radius_mm: Float[Array, ""] = eqx.field(converter=_float, default=3.5)
+    key: Key[Array, ""] = eqx.field(converter=as_key)
+    spacing_mm: Float[Array, ""] = eqx.field(converter=as_float, default=0.04)
+    line_thickness_mm: Float[Array, ""] = eqx.field(converter=as_float, default=0.012)
+    line_length_mm: Float[Array, ""] = eqx.field(converter=as_float, default=0.3)
+    inner_radius_mm: Float[Array, ""] = eqx.field(converter=as_float, default=2.0)
+    outer_radius_mm: Float[Array, ""] = eqx.field(converter=as_float, default=3.5)
     lines_per_grating: int = eqx.field(static=True, default=5)
     stamp_bound_mm: float | None = eqx.field(static=True, default=None)
     stamp_half_px: int | None = eqx.field(static=True, default=None)
@@ -640,14 +598,14 @@ class Gratings(eqx.Module):
         _check_n_max("gratings", self.n_max)
         _check_count("gratings", self.count, self.n_max)
         _check_static_int("gratings lines_per_grating", self.lines_per_grating, 1)
-        _check_range("gratings spacing_mm", self.spacing_mm, 0.0, lo_open=True, unit="mm")
-        _check_range(
+        check_range("gratings spacing_mm", self.spacing_mm, 0.0, lo_open=True, unit="mm")
+        check_range(
             "gratings line_thickness_mm", self.line_thickness_mm, 0.0, lo_open=True, unit="mm"
         )
-        _check_range("gratings line_length_mm", self.line_length_mm, 0.0, lo_open=True, unit="mm")
-        _check_range("gratings inner_radius_mm", self.inner_radius_mm, 0.0, unit="mm")
-        _check_range("gratings outer_radius_mm", self.outer_radius_mm, 0.0, lo_open=True, unit="mm")
-        if _is_concrete(self.inner_radius_mm) and _is_concrete(self.outer_radius_mm):
+        check_range("gratings line_length_mm", self.line_length_mm, 0.0, lo_open=True, unit="mm")
+        check_range("gratings inner_radius_mm", self.inner_radius_mm, 0.0, unit="mm")
+        check_range("gratings outer_radius_mm", self.outer_radius_mm, 0.0, lo_open=True, unit="mm")
+        if is_concrete(self.inner_radius_mm) and is_concrete(self.outer_radius_mm):
             inner, outer = float(self.inner_radius_mm), float(self.outer_radius_mm)
             if inner >= outer:
                 raise PhysicsRangeError(
@@ -805,7 +763,7 @@ class EyeAperture(eqx.Module):
         ``x_f / f`` sees the lashes shifted); 0 gives the fixed mask of eq. 5.
         Differentiable in `shift_mm` and vmappable over it. Without lids it is 1.
         """
-        return _obstacle_image(self._resolve_windows(grid), grid, _float(shift_mm))
+        return _obstacle_image(self._resolve_windows(grid), grid, as_float(shift_mm))
 
     def transmission(self, grid: ApertureGrid) -> Float[Array, "n n"]:
         """``P * t_o`` with the obstacle unshifted (Kakimoto eq. 5's fixed mask)."""
@@ -1201,7 +1159,7 @@ def eye_to_config(eye: EyeAperture) -> dict[str, Any]:
 
 
 def _preset_key(key, tag: int) -> Key[Array, ""]:
-    return jax.random.fold_in(_as_key(key), tag)
+    return jax.random.fold_in(as_key(key), tag)
 
 
 def daylight_eye(key: Key[Array, ""] | int = 0) -> EyeAperture:

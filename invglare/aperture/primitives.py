@@ -7,12 +7,12 @@ static string: ``"open"`` shapes transmit light (a pupil, a diaphragm),
 combine is the business of :class:`invglare.aperture.Aperture`.
 
 `coverage(grid)` returns, for every pixel of an
-:class:`~invglare.optics.sampling.ApertureGrid`, the fraction of the pixel covered
+:class:`~invglare._core.grids.ApertureGrid`, the fraction of the pixel covered
 by the shape, computed analytically from the shape's signed distance and outward
 normal (see :func:`invglare.aperture.edge_coverage`), so that the result is
 anti-aliased and differentiable in every parameter.
 
-Coordinates follow :class:`~invglare.optics.sampling.ApertureGrid`: lengths in
+Coordinates follow :class:`~invglare._core.grids.ApertureGrid`: lengths in
 mm, x along columns, y along rows, both 0 at index ``npix // 2``; centres are
 given as ``(x, y)``. Angles are in degrees, counter-clockwise from +x towards +y.
 """
@@ -24,18 +24,18 @@ import math
 from pathlib import Path
 
 import equinox as eqx
-import jax
 import jax.numpy as jnp
 import numpy as np
 from jax.scipy.ndimage import map_coordinates
 from jaxtyping import Array, ArrayLike, Float
 
+from invglare._core.checks import as_float, is_concrete
+from invglare._core.grids import ApertureGrid, check_positive
 from invglare.aperture.coverage import (
     capsule_edge_coverage,
     curved_edge_coverage,
 )
 from invglare.errors import ConfigError, InputDataError, PhysicsRangeError
-from invglare.optics.sampling import ApertureGrid, check_positive
 
 #: The two roles a shape can play in an aperture.
 ROLES = ("open", "block")
@@ -48,21 +48,9 @@ _LUMA = np.array([0.2126, 0.7152, 0.0722])
 # small helpers
 
 
-def _float_array(x) -> Array:
-    """`jnp.asarray`, promoting integers (e.g. ``center_mm=(0, 0)``) to the default float."""
-    arr = jnp.asarray(x)
-    if not jnp.issubdtype(arr.dtype, jnp.floating):
-        arr = arr.astype(jnp.result_type(float))
-    return arr
-
-
-def _is_concrete(x) -> bool:
-    return not isinstance(x, jax.core.Tracer)
-
-
 def _check_interval(name: str, value, lo: float, hi: float, hi_open: bool = False) -> None:
     """Raise `PhysicsRangeError` unless concrete `value` lies in [lo, hi] (or [lo, hi))."""
-    if not _is_concrete(value):
+    if not is_concrete(value):
         return
     arr = np.asarray(value, dtype=float)
     bad = ~np.isfinite(arr) | (arr < lo) | ((arr >= hi) if hi_open else (arr > hi))
@@ -74,7 +62,7 @@ def _check_interval(name: str, value, lo: float, hi: float, hi_open: bool = Fals
 
 def _check_point(name: str, value) -> None:
     """A 2-vector of finite numbers (x, y) in mm."""
-    if not _is_concrete(value):
+    if not is_concrete(value):
         return
     arr = np.asarray(value, dtype=float)
     if arr.shape != (2,) or not np.all(np.isfinite(arr)):
@@ -148,8 +136,8 @@ class Disk(AbstractShape):
     ~2.5e-4 at a radius of 64 px and ~5e-4 at 20 px.
     """
 
-    diameter_mm: Float[Array, ""] = eqx.field(converter=_float_array)
-    center_mm: Float[Array, " 2"] = eqx.field(converter=_float_array, default=(0.0, 0.0))
+    diameter_mm: Float[Array, ""] = eqx.field(converter=as_float)
+    center_mm: Float[Array, " 2"] = eqx.field(converter=as_float, default=(0.0, 0.0))
     role: str = eqx.field(static=True, default="open")
 
     def __check_init__(self):
@@ -182,10 +170,10 @@ class Ellipse(AbstractShape):
     Default role ``"open"`` (an astigmatic or tilted pupil).
     """
 
-    diameter_mm: Float[Array, ""] = eqx.field(converter=_float_array)
-    ellipticity: Float[Array, ""] = eqx.field(converter=_float_array, default=0.0)
-    rotation_deg: Float[Array, ""] = eqx.field(converter=_float_array, default=0.0)
-    center_mm: Float[Array, " 2"] = eqx.field(converter=_float_array, default=(0.0, 0.0))
+    diameter_mm: Float[Array, ""] = eqx.field(converter=as_float)
+    ellipticity: Float[Array, ""] = eqx.field(converter=as_float, default=0.0)
+    rotation_deg: Float[Array, ""] = eqx.field(converter=as_float, default=0.0)
+    center_mm: Float[Array, " 2"] = eqx.field(converter=as_float, default=(0.0, 0.0))
     role: str = eqx.field(static=True, default="open")
 
     def __check_init__(self):
@@ -261,10 +249,10 @@ class RegularPolygon(AbstractShape):
     """
 
     n_blades: int = eqx.field(static=True)
-    diameter_mm: Float[Array, ""] = eqx.field(converter=_float_array)
-    rotation_deg: Float[Array, ""] = eqx.field(converter=_float_array, default=0.0)
-    rounding: Float[Array, ""] = eqx.field(converter=_float_array, default=0.0)
-    center_mm: Float[Array, " 2"] = eqx.field(converter=_float_array, default=(0.0, 0.0))
+    diameter_mm: Float[Array, ""] = eqx.field(converter=as_float)
+    rotation_deg: Float[Array, ""] = eqx.field(converter=as_float, default=0.0)
+    rounding: Float[Array, ""] = eqx.field(converter=as_float, default=0.0)
+    center_mm: Float[Array, " 2"] = eqx.field(converter=as_float, default=(0.0, 0.0))
     role: str = eqx.field(static=True, default="open")
 
     def __check_init__(self):
@@ -353,9 +341,9 @@ class Capsule(AbstractShape):
     pixel are only roughly right, and so are segments shorter than about a pixel.
     """
 
-    start_mm: Float[Array, " 2"] = eqx.field(converter=_float_array)
-    end_mm: Float[Array, " 2"] = eqx.field(converter=_float_array)
-    thickness_mm: Float[Array, ""] = eqx.field(converter=_float_array)
+    start_mm: Float[Array, " 2"] = eqx.field(converter=as_float)
+    end_mm: Float[Array, " 2"] = eqx.field(converter=as_float)
+    thickness_mm: Float[Array, ""] = eqx.field(converter=as_float)
     role: str = eqx.field(static=True, default="block")
 
     def __check_init__(self):
@@ -499,15 +487,15 @@ class ImageMask(AbstractShape):
     pitch close to the grid pitch.
     """
 
-    transmission: Float[Array, "rows cols"] = eqx.field(converter=_float_array)
-    width_mm: Float[Array, ""] = eqx.field(converter=_float_array)
-    center_mm: Float[Array, " 2"] = eqx.field(converter=_float_array, default=(0.0, 0.0))
-    rotation_deg: Float[Array, ""] = eqx.field(converter=_float_array, default=0.0)
+    transmission: Float[Array, "rows cols"] = eqx.field(converter=as_float)
+    width_mm: Float[Array, ""] = eqx.field(converter=as_float)
+    center_mm: Float[Array, " 2"] = eqx.field(converter=as_float, default=(0.0, 0.0))
+    rotation_deg: Float[Array, ""] = eqx.field(converter=as_float, default=0.0)
     role: str = eqx.field(static=True, default="open")
     source: str | None = eqx.field(static=True, default=None)
 
     def __check_init__(self):
-        if _is_concrete(self.transmission):
+        if is_concrete(self.transmission):
             name = self.source if self.source is not None else "(array)"
             _validate_transmission(np.asarray(self.transmission), name)
         check_positive("image width_mm", self.width_mm, "mm")

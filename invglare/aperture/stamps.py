@@ -45,19 +45,16 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float
 
+from invglare._core.checks import is_concrete
+from invglare._core.grids import ApertureGrid
 from invglare.aperture.primitives import Capsule, Disk
 from invglare.errors import ConfigError
 from invglare.optics.fourier import materialise
-from invglare.optics.sampling import ApertureGrid
 
 #: Reach (px) of a window beyond the element's half-extent: 0.5 px for rounding the anchor
 #: to its nearest pixel, plus up to ``(|nx| + |ny|) / 2 <= 0.71`` px over which a soft edge
 #: still covers part of a pixel whose centre lies outside the shape.
 WINDOW_MARGIN_PX = 1.25
-
-
-def _is_concrete(x) -> bool:
-    return not isinstance(x, jax.core.Tracer)
 
 
 def window_half_px(half_extent_mm: float | ArrayLike, pitch_mm: float | ArrayLike) -> int:
@@ -75,7 +72,7 @@ def window_half_px(half_extent_mm: float | ArrayLike, pitch_mm: float | ArrayLik
 
     **Raises:** `ConfigError` when either value is traced.
     """
-    if not (_is_concrete(half_extent_mm) and _is_concrete(pitch_mm)):
+    if not (is_concrete(half_extent_mm) and is_concrete(pitch_mm)):
         raise ConfigError(
             "a stamp window size is a static array shape, so it needs concrete element "
             "sizes and grid pitch; inside jit / grad / vmap over them fix the window first "

@@ -140,8 +140,8 @@ def _weights(shape: tuple[int, ...], seed: int):
 
 def _night_eye_on_grid(n: int):
     """The full night eye with its stamp windows fixed for an N/2 grid (so it jits)."""
+    from invglare._core.grids import ApertureGrid
     from invglare.aperture.eye import night_eye
-    from invglare.optics.sampling import ApertureGrid
 
     eye = night_eye(0)
     # The pupil plus 2 %: the transmission is 0 outside the pupil, so a wider window

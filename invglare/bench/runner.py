@@ -27,7 +27,7 @@ from typing import Any
 
 from tqdm import tqdm
 
-from invglare.allocator import retain_freed_memory
+from invglare._core.allocator import retain_freed_memory
 from invglare.bench.cases import CASES as STATIC_CASES
 from invglare.bench.cases import Case
 from invglare.bench.fit import FIT_CASES
@@ -59,7 +59,7 @@ NOTES = (
     "time over wall time while timing (below 1: the case waited for a core). Ratios compare "
     "times taken in the same run, so load affects both sides, but not necessarily equally.",
     "`first call s` is the first call of the case: tracing, XLA compilation and one run.",
-    "glibc's malloc keeps freed memory for reuse (`invglare.allocator.retain_freed_memory`, "
+    "glibc's malloc keeps freed memory for reuse (`invglare._core.allocator.retain_freed_memory`, "
     "as the `invglare` command sets it; `retain_freed_memory` in bench.json's meta says "
     "whether it took effect): otherwise XLA's per-call buffers are mapped and zeroed anew "
     "by the kernel on every call.",

@@ -24,8 +24,8 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float, Key
 
+from invglare._core.checks import as_float, check_range
 from invglare.dynamics.noise import uniform, value_noise
-from invglare.dynamics.pupil import _float, check_range
 from invglare.errors import ConfigError, PhysicsRangeError
 
 #: The band of the high-frequency component (Hz), after Gray et al. (1993).
@@ -59,15 +59,15 @@ class Accommodation(eqx.Module):
     ```
     """
 
-    low_d_per_mm: Float[Array, ""] = eqx.field(converter=_float, default=0.03)
-    low_rate_hz: Float[Array, ""] = eqx.field(converter=_float, default=0.08)
-    high_rms_d: Float[Array, ""] = eqx.field(converter=_float, default=0.05)
+    low_d_per_mm: Float[Array, ""] = eqx.field(converter=as_float, default=0.03)
+    low_rate_hz: Float[Array, ""] = eqx.field(converter=as_float, default=0.08)
+    high_rms_d: Float[Array, ""] = eqx.field(converter=as_float, default=0.05)
     high_band_hz: tuple[float, float] = eqx.field(static=True, default=HIGH_BAND_HZ)
     n_high: int = eqx.field(static=True, default=8)
 
     def __check_init__(self):
         check_range("accommodation low_d_per_mm", self.low_d_per_mm, 0.0, unit="D/mm")
-        check_range("accommodation low_rate_hz", self.low_rate_hz, 0.0, 0.3, True, unit="Hz")
+        check_range("accommodation low_rate_hz", self.low_rate_hz, 0.0, 0.3, lo_open=True, unit="Hz")
         check_range("accommodation high_rms_d", self.high_rms_d, 0.0, unit="D")
         lo, hi = self.high_band_hz
         if not (0.0 < lo < hi and math.isfinite(hi)):
@@ -82,14 +82,14 @@ class Accommodation(eqx.Module):
         self, t_s: Float[ArrayLike, "*shape"], key: Key[Array, ""], pupil_mm: Float[ArrayLike, ""]
     ) -> Float[Array, "*shape"]:
         """The low-frequency component (D)."""
-        noise = value_noise(_float(t_s) * self.low_rate_hz, jax.random.fold_in(key, _LOW_TAG))
-        return self.low_d_per_mm * _float(pupil_mm) * noise
+        noise = value_noise(as_float(t_s) * self.low_rate_hz, jax.random.fold_in(key, _LOW_TAG))
+        return self.low_d_per_mm * as_float(pupil_mm) * noise
 
     def high_d(
         self, t_s: Float[ArrayLike, "*shape"], key: Key[Array, ""]
     ) -> Float[Array, "*shape"]:
         """The narrow-band high-frequency component (D)."""
-        t = _float(t_s)
+        t = as_float(t_s)
         k_f, k_p = jax.random.split(jax.random.fold_in(key, _HIGH_TAG))
         lo, hi = self.high_band_hz
         freqs = uniform(k_f, (self.n_high,), t.dtype, lo, hi)

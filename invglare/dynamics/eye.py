@@ -20,10 +20,11 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float, Int, Key
 
+from invglare._core.checks import as_float, check_range
 from invglare.dynamics.accommodation import Accommodation
 from invglare.dynamics.lens import LensMesh, LensState
 from invglare.dynamics.lids import LidMotion
-from invglare.dynamics.pupil import PupilDynamics, _float, check_range, damp_luminance
+from invglare.dynamics.pupil import PupilDynamics, damp_luminance
 from invglare.dynamics.vitreous import VitreousBody, VitreousState, rotation_matrix
 
 _HIPPUS, _ACCOMMODATION, _VITREOUS, _LIDS = 1, 2, 3, 4
@@ -164,7 +165,7 @@ class EyeDynamics(eqx.Module):
         The lens is driven by the accommodation signal of the frame's mean pupil; the
         vitreous by this frame's saccade draw.
         """
-        dt = _float(dt_s)
+        dt = as_float(dt_s)
         mean = self.pupil.mean_diameter_mm(state.field_luminance_cd_m2, rest_pupil_mm)
         k_acc = jax.random.fold_in(key, _ACCOMMODATION)
         lens = self.lens.step(

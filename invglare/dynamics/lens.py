@@ -34,7 +34,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float
 
-from invglare.dynamics.pupil import _float, check_range
+from invglare._core.checks import as_float, check_range
 from invglare.errors import ConfigError
 
 # The 4 spring directions (row, column offsets); with their opposites, the 8 neighbours.
@@ -90,12 +90,12 @@ class LensMesh(eqx.Module):
     ```
     """
 
-    radius_mm: Float[Array, ""] = eqx.field(converter=_float, default=4.5)
-    half_thickness_mm: Float[Array, ""] = eqx.field(converter=_float, default=2.0)
-    stiffness_per_s2: Float[Array, ""] = eqx.field(converter=_float, default=1400.0)
-    anchor_ratio: Float[Array, ""] = eqx.field(converter=_float, default=0.02)
-    damping_per_s: Float[Array, ""] = eqx.field(converter=_float, default=20.0)
-    equator_mm_per_diopter: Float[Array, ""] = eqx.field(converter=_float, default=0.05)
+    radius_mm: Float[Array, ""] = eqx.field(converter=as_float, default=4.5)
+    half_thickness_mm: Float[Array, ""] = eqx.field(converter=as_float, default=2.0)
+    stiffness_per_s2: Float[Array, ""] = eqx.field(converter=as_float, default=1400.0)
+    anchor_ratio: Float[Array, ""] = eqx.field(converter=as_float, default=0.02)
+    damping_per_s: Float[Array, ""] = eqx.field(converter=as_float, default=20.0)
+    equator_mm_per_diopter: Float[Array, ""] = eqx.field(converter=as_float, default=0.05)
     nodes: int = eqx.field(static=True, default=17)
     substeps: int = eqx.field(static=True, default=8)
 
@@ -200,8 +200,8 @@ class LensMesh(eqx.Module):
         placed at ``-equator_mm_per_diopter * accommodation`` from its rest place.
         """
         x0 = self.rest_positions_mm()
-        h = _float(dt_s) / self.substeps
-        t0 = _float(t_s)
+        h = as_float(dt_s) / self.substeps
+        t0 = as_float(t_s)
 
         def substep(i, xv):
             x, v = xv

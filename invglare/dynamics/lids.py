@@ -21,8 +21,8 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float, Key
 
+from invglare._core.checks import as_float, check_range
 from invglare.dynamics.noise import _smooth, uniform
-from invglare.dynamics.pupil import _float, check_range
 from invglare.errors import ConfigError
 
 _BLINK_TAG = 31
@@ -47,13 +47,13 @@ class LidMotion(eqx.Module):
     ```
     """
 
-    interval_s: Float[Array, ""] = eqx.field(converter=_float, default=4.0)
-    jitter: Float[Array, ""] = eqx.field(converter=_float, default=0.3)
-    first_blink_s: Float[Array, ""] = eqx.field(converter=_float, default=2.0)
-    close_s: Float[Array, ""] = eqx.field(converter=_float, default=0.08)
-    hold_s: Float[Array, ""] = eqx.field(converter=_float, default=0.04)
-    open_s: Float[Array, ""] = eqx.field(converter=_float, default=0.18)
-    squint: Float[Array, ""] = eqx.field(converter=_float, default=0.0)
+    interval_s: Float[Array, ""] = eqx.field(converter=as_float, default=4.0)
+    jitter: Float[Array, ""] = eqx.field(converter=as_float, default=0.3)
+    first_blink_s: Float[Array, ""] = eqx.field(converter=as_float, default=2.0)
+    close_s: Float[Array, ""] = eqx.field(converter=as_float, default=0.08)
+    hold_s: Float[Array, ""] = eqx.field(converter=as_float, default=0.04)
+    open_s: Float[Array, ""] = eqx.field(converter=as_float, default=0.18)
+    squint: Float[Array, ""] = eqx.field(converter=as_float, default=0.0)
 
     def __check_init__(self):
         check_range("lids interval_s", self.interval_s, 0.0, unit="s")
@@ -101,7 +101,7 @@ class LidMotion(eqx.Module):
 
     def closure(self, t_s: Float[ArrayLike, ""], key: Key[Array, ""]) -> Float[Array, ""]:
         """Blink closure in ``[0, 1]`` at time `t_s` (0 without blinking)."""
-        t = _float(t_s)
+        t = as_float(t_s)
         interval = jnp.where(self.interval_s > 0, self.interval_s, 1.0)
         k = jnp.floor((t - self.first_blink_s) / interval).astype(jnp.int32)
         # Blinks are shorter than the gap between them, so the current one is k - 1, k or k + 1.

@@ -20,16 +20,13 @@ and +-0.04 mm at 7.9 mm with the default 0.1 mm).
 
 from __future__ import annotations
 
-import math
-
 import equinox as eqx
-import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float, Key
 
+from invglare._core.checks import as_float, check_range, is_concrete
 from invglare.dynamics.noise import value_noise
-from invglare.errors import PhysicsRangeError
 
 #: Largest pupil diameter of eq. 1 (mm).
 P_MAX_MM = 9.0
@@ -38,31 +35,6 @@ MOON_SPENCER_RANGE_MM = (1.9, 7.9)
 #: Luminances below this (cd/m^2) count as this: eq. 2 has a log, and is flat there anyway.
 _MIN_LUMINANCE_CD_M2 = 1e-12
 
-
-def _float(x) -> Array:
-    arr = jnp.asarray(x)
-    if not jnp.issubdtype(arr.dtype, jnp.floating):
-        arr = arr.astype(jnp.result_type(float))
-    return arr
-
-
-def _concrete(x) -> bool:
-    return not isinstance(x, jax.core.Tracer)
-
-
-def check_range(name: str, value, lo: float, hi: float = math.inf, lo_open=False, unit=""):
-    """Raise `PhysicsRangeError` unless a concrete `value` is finite and within the bounds."""
-    if not _concrete(value):
-        return
-    arr = np.asarray(value, dtype=float)
-    bad = ~np.isfinite(arr) | ((arr <= lo) if lo_open else (arr < lo)) | (arr > hi)
-    if np.any(bad):
-        lo_txt = f"> {lo:g}" if lo_open else f">= {lo:g}"
-        hi_txt = f" and <= {hi:g}" if math.isfinite(hi) else ""
-        shown = f"{arr.item():g}" if arr.size == 1 else np.array2string(arr, precision=4)
-        raise PhysicsRangeError(
-            f"{name} must be finite, {lo_txt}{hi_txt}, got {shown}{' ' + unit if unit else ''}"
-        )
 
 
 def moon_spencer_diameter_mm(luminance_cd_m2: Float[ArrayLike, "*shape"]) -> Float[Array, "*shape"]:
@@ -81,7 +53,7 @@ def moon_spencer_diameter_mm(luminance_cd_m2: Float[ArrayLike, "*shape"]) -> Flo
     ```
     """
     check_range("field luminance", luminance_cd_m2, 0.0, unit="cd/m^2")
-    lum = jnp.maximum(_float(luminance_cd_m2), _MIN_LUMINANCE_CD_M2)
+    lum = jnp.maximum(as_float(luminance_cd_m2), _MIN_LUMINANCE_CD_M2)
     return 4.9 - 3.0 * jnp.tanh(0.4 * (jnp.log10(lum) + 1.0))
 
 
@@ -89,7 +61,7 @@ def hippus_scale(
     mean_diameter_mm: Float[ArrayLike, "*shape"], max_diameter_mm: float | Array = P_MAX_MM
 ) -> Float[Array, "*shape"]:
     """The factor ``(p_max / p) sqrt(1 - p / p_max)`` of eq. 1 (grows as the pupil shrinks)."""
-    p = _float(mean_diameter_mm)
+    p = as_float(mean_diameter_mm)
     q = p / max_diameter_mm
     return jnp.sqrt(jnp.maximum(1.0 - q, 0.0)) / q
 
@@ -121,8 +93,8 @@ def hippus_diameter_mm(
     h = hippus_diameter_mm(jnp.linspace(0, 10, 300), 2.5, jax.random.key(1))
     ```
     """
-    p = _float(mean_diameter_mm)
-    noise = value_noise(_float(t_s) / p, key)
+    p = as_float(mean_diameter_mm)
+    noise = value_noise(as_float(t_s) / p, key)
     return p + amplitude_mm * noise * hippus_scale(p, max_diameter_mm)
 
 
@@ -153,9 +125,9 @@ def damp_luminance(
     ``L <- L + (1 - exp(-dt / tau)) (L_frame - L)``: after a step change the average
     approaches the new level as ``1 - exp(-t / tau)`` whatever the frame rate.
     """
-    alpha = -jnp.expm1(-_float(dt_s) / time_constant_s)
-    prev = _float(previous_cd_m2)
-    return prev + alpha * (_float(current_cd_m2) - prev)
+    alpha = -jnp.expm1(-as_float(dt_s) / time_constant_s)
+    prev = as_float(previous_cd_m2)
+    return prev + alpha * (as_float(current_cd_m2) - prev)
 
 
 class PupilDynamics(eqx.Module):
@@ -173,15 +145,15 @@ class PupilDynamics(eqx.Module):
       fit, and what "frozen" dynamics use).
     """
 
-    hippus_amplitude_mm: Float[Array, ""] = eqx.field(converter=_float, default=0.1)
-    max_diameter_mm: Float[Array, ""] = eqx.field(converter=_float, default=P_MAX_MM)
-    adaptation_time_s: Float[Array, ""] = eqx.field(converter=_float, default=0.5)
+    hippus_amplitude_mm: Float[Array, ""] = eqx.field(converter=as_float, default=0.1)
+    max_diameter_mm: Float[Array, ""] = eqx.field(converter=as_float, default=P_MAX_MM)
+    adaptation_time_s: Float[Array, ""] = eqx.field(converter=as_float, default=0.5)
     from_luminance: bool = eqx.field(static=True, default=True)
 
     def __check_init__(self):
         check_range("pupil max_diameter_mm", self.max_diameter_mm, 7.9, lo_open=True, unit="mm")
         check_range("pupil adaptation_time_s", self.adaptation_time_s, 0.0, lo_open=True, unit="s")
-        if _concrete(self.max_diameter_mm):
+        if is_concrete(self.max_diameter_mm):
             bound = max_hippus_amplitude_mm(*MOON_SPENCER_RANGE_MM, float(self.max_diameter_mm))
             check_range(
                 "pupil hippus_amplitude_mm", self.hippus_amplitude_mm, 0.0, bound, unit="mm"
@@ -193,7 +165,7 @@ class PupilDynamics(eqx.Module):
         """Eq. 2 of the field luminance, or the rest diameter when not `from_luminance`."""
         if self.from_luminance:
             return moon_spencer_diameter_mm(field_luminance_cd_m2)
-        return _float(rest_diameter_mm)
+        return as_float(rest_diameter_mm)
 
     def diameter_mm(
         self, t_s: Float[ArrayLike, ""], mean_mm: Float[ArrayLike, ""], key: Key[Array, ""]

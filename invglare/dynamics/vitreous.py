@@ -30,8 +30,8 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float, Key
 
+from invglare._core.checks import as_float, check_range
 from invglare.dynamics.noise import uniform
-from invglare.dynamics.pupil import _float, check_range
 from invglare.errors import ConfigError
 
 
@@ -45,7 +45,7 @@ class VitreousState(eqx.Module):
 
 def rotation_matrix(rotvec: Float[ArrayLike, " 3"]) -> Float[Array, "3 3"]:
     """The rotation of a rotation vector (Rodrigues), exact and smooth through 0."""
-    w = _float(rotvec)
+    w = as_float(rotvec)
     angle2 = jnp.sum(w * w)
     small = angle2 < 1e-8
     safe2 = jnp.where(small, 1.0, angle2)
@@ -81,11 +81,11 @@ class VitreousBody(eqx.Module):
     ```
     """
 
-    damping_per_s: Float[Array, ""] = eqx.field(converter=_float, default=4.0)
-    stiffness_per_s2: Float[Array, ""] = eqx.field(converter=_float, default=10.0)
-    saccade_rate_hz: Float[Array, ""] = eqx.field(converter=_float, default=1.0)
-    saccade_strength_rad_s2: Float[Array, ""] = eqx.field(converter=_float, default=2.0)
-    saccade_decay_s: Float[Array, ""] = eqx.field(converter=_float, default=0.05)
+    damping_per_s: Float[Array, ""] = eqx.field(converter=as_float, default=4.0)
+    stiffness_per_s2: Float[Array, ""] = eqx.field(converter=as_float, default=10.0)
+    saccade_rate_hz: Float[Array, ""] = eqx.field(converter=as_float, default=1.0)
+    saccade_strength_rad_s2: Float[Array, ""] = eqx.field(converter=as_float, default=2.0)
+    saccade_decay_s: Float[Array, ""] = eqx.field(converter=as_float, default=0.05)
 
     def __check_init__(self):
         check_range("vitreous damping_per_s", self.damping_per_s, 0.0, unit="1/s")
@@ -125,7 +125,7 @@ class VitreousBody(eqx.Module):
         self, state: VitreousState, key: Key[Array, ""], dt_s: float | ArrayLike
     ) -> VitreousState:
         """Advance by `dt_s` (forward Euler); `key` decides this step's saccade."""
-        dt = _float(dt_s)
+        dt = as_float(dt_s)
         k_hit, k_dir = jax.random.split(key)
         dtype = state.velocity_rad_s.dtype
         hit = uniform(k_hit, (), dtype) < self.saccade_rate_hz * dt

@@ -37,6 +37,7 @@ from jax.scipy.ndimage import map_coordinates
 from jax.scipy.special import log_ndtr
 from jaxtyping import Array, ArrayLike, Bool, Float, Int, PRNGKeyArray
 
+from invglare._core.checks import as_float
 from invglare.errors import ConfigError, InputDataError, PhysicsRangeError
 from invglare.optics.spectral import scale_psf
 
@@ -44,13 +45,6 @@ CENSORING = ("survival", "exclude")
 
 #: An observed pixel at or above ``saturation * (1 - SATURATED_RTOL)`` counts as clipped.
 SATURATED_RTOL = 1e-4
-
-
-def _float(x) -> Array:
-    arr = jnp.asarray(x)
-    if not jnp.issubdtype(arr.dtype, jnp.floating):
-        arr = arr.astype(jnp.result_type(float))
-    return arr
 
 
 def _concrete(x) -> np.ndarray | None:
@@ -207,17 +201,17 @@ class Observation(eqx.Module):
     ```
     """
 
-    flux: Float[Array, ""] = eqx.field(converter=_float, default=1.0)
-    background: Float[Array, ""] = eqx.field(converter=_float, default=0.0)
-    dx_px: Float[Array, ""] = eqx.field(converter=_float, default=0.0)
-    dy_px: Float[Array, ""] = eqx.field(converter=_float, default=0.0)
-    rotation_deg: Float[Array, ""] = eqx.field(converter=_float, default=0.0)
-    pixel_scale_ratio: Float[Array, ""] = eqx.field(converter=_float, default=1.0)
-    response: Float[Array, ""] = eqx.field(converter=_float, default=1.0)
-    gain: Float[Array, ""] = eqx.field(converter=_float, default=1.0)
-    read_noise: Float[Array, ""] = eqx.field(converter=_float, default=0.0)
+    flux: Float[Array, ""] = eqx.field(converter=as_float, default=1.0)
+    background: Float[Array, ""] = eqx.field(converter=as_float, default=0.0)
+    dx_px: Float[Array, ""] = eqx.field(converter=as_float, default=0.0)
+    dy_px: Float[Array, ""] = eqx.field(converter=as_float, default=0.0)
+    rotation_deg: Float[Array, ""] = eqx.field(converter=as_float, default=0.0)
+    pixel_scale_ratio: Float[Array, ""] = eqx.field(converter=as_float, default=1.0)
+    response: Float[Array, ""] = eqx.field(converter=as_float, default=1.0)
+    gain: Float[Array, ""] = eqx.field(converter=as_float, default=1.0)
+    read_noise: Float[Array, ""] = eqx.field(converter=as_float, default=0.0)
     source_radius_px: Float[Array, ""] | None = eqx.field(
-        converter=lambda x: None if x is None else _float(x), default=None
+        converter=lambda x: None if x is None else as_float(x), default=None
     )
     saturation: float | None = eqx.field(static=True, default=None)
     clip_softness: float = eqx.field(static=True, default=0.01)

@@ -278,7 +278,7 @@ def _check_wavelengths(wavelengths_nm: Any) -> list[float]:
             f"wavelengths_nm must be a non-empty 1-D sequence in nm; got shape {arr.shape}"
         )
     # Imported here so that reading EXRs does not pull in JAX.
-    from invglare.optics.sampling import WAVELENGTH_RANGE_NM
+    from invglare._core.grids import WAVELENGTH_RANGE_NM
 
     lo, hi = WAVELENGTH_RANGE_NM
     bad = ~(np.isfinite(arr) & (arr >= lo) & (arr <= hi))

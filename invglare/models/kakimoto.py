@@ -68,10 +68,11 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
+from invglare._core.checks import as_float
+from invglare._core.grids import ApertureGrid
 from invglare.errors import ConfigError, PhysicsRangeError
 from invglare.models.aperture_psf import build_propagator
 from invglare.optics.propagator import Propagator, choose
-from invglare.optics.sampling import ApertureGrid
 from invglare.optics.spectral import DEFAULT_WAVELENGTHS, Spectrum, parse_wavelengths
 
 __all__ = [
@@ -140,13 +141,6 @@ def _check_angles(light_angle_deg: Array, batched: bool) -> None:
         )
 
 
-def _float(x) -> Array:
-    arr = jnp.asarray(x)
-    if not jnp.issubdtype(arr.dtype, jnp.floating):
-        arr = arr.astype(jnp.result_type(float))
-    return arr
-
-
 class KakimotoGlare(eqx.Module):
     """Glare PSF of an obstacle image masked by a pupil (Kakimoto et al., eq. 3 and 5).
 
@@ -170,7 +164,7 @@ class KakimotoGlare(eqx.Module):
     aperture: Any
     propagator: Propagator
     spectrum: Spectrum
-    obstacle_distance_mm: Float[Array, ""] = eqx.field(converter=_float)
+    obstacle_distance_mm: Float[Array, ""] = eqx.field(converter=as_float)
     masking: str = eqx.field(static=True, default="fixed")
     colour: str = eqx.field(static=True, default="paper_rgb")
     max_light_angle_deg: float = eqx.field(static=True, default=0.0)
@@ -324,7 +318,7 @@ class KakimotoGlare(eqx.Module):
 
     def obstacle_shift_mm(self, light_angle_deg: Float[ArrayLike, " 2"]) -> Float[Array, " 2"]:
         """Translation (mm) of the obstacle image over the pupil, ``-d_o tan(angle)``."""
-        angle = _float(light_angle_deg)
+        angle = as_float(light_angle_deg)
         return -self.obstacle_distance_mm * jnp.tan(jnp.deg2rad(angle))
 
     def field(self, light_angle_deg: Float[ArrayLike, " 2"] = (0.0, 0.0)) -> Float[Array, "n n"]:
@@ -368,7 +362,7 @@ class KakimotoGlare(eqx.Module):
         psf = model((3.0, -1.0))   # light 3 deg right and 1 deg down
         ```
         """
-        angle = _float(light_angle_deg)
+        angle = as_float(light_angle_deg)
         _check_angles(angle, batched=False)
         return self._psf(self.field(angle))
 
@@ -392,7 +386,7 @@ class KakimotoGlare(eqx.Module):
         psfs = eqx.filter_jit(model.batch)(angles)   # (64, npix, npix, 3)
         ```
         """
-        angles = _float(light_angles_deg)
+        angles = as_float(light_angles_deg)
         _check_angles(angles, batched=True)
         if self.masking == "fixed":
             psf = self._psf(self.field())

@@ -52,6 +52,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float, Key
 
+from invglare._core.checks import as_float, as_key
 from invglare.aperture.eye import EyeAperture, Particles
 from invglare.dynamics import (
     DynamicsState,
@@ -89,29 +90,11 @@ _DEPTH_TAG = 4242
 _REC709_Y = (0.2126, 0.7152, 0.0722)
 
 
-def _as_key(x) -> Key[Array, ""]:
-    if isinstance(x, int | np.integer) and not isinstance(x, bool):
-        return jax.random.key(int(x))
-    arr = jnp.asarray(x)
-    if jnp.issubdtype(arr.dtype, jax.dtypes.prng_key):
-        return arr
-    if arr.dtype == jnp.uint32:
-        return jax.random.wrap_key_data(arr)
-    raise ConfigError(f"key must be a jax.random.key, raw uint32 key data or an int, got {x!r}")
-
-
-def _float(x) -> Array:
-    arr = jnp.asarray(x)
-    if not jnp.issubdtype(arr.dtype, jnp.floating):
-        arr = arr.astype(jnp.result_type(float))
-    return arr
-
-
 def frame_luminance_cd_m2(
     image: Float[ArrayLike, "H W *c"], luminance_scale: float | Float[ArrayLike, ""] = 1.0
 ) -> Float[Array, ""]:
     """Mean luminance (cd/m^2) of a frame: Rec. 709 Y of RGB (or the mono values) times scale."""
-    image = _float(image)
+    image = as_float(image)
     y = image if image.ndim == 2 else image @ jnp.asarray(_REC709_Y, image.dtype)
     return jnp.mean(y) * luminance_scale
 
@@ -159,11 +142,11 @@ class TemporalGlare(eqx.Module):
 
     eye: EyeAperture
     dynamics: EyeDynamics
-    key: Key[Array, ""] = eqx.field(converter=_as_key)
+    key: Key[Array, ""] = eqx.field(converter=as_key)
     propagator: Propagator
     spectrum: Spectrum
-    field_luminance_cd_m2: Float[Array, ""] = eqx.field(converter=_float)
-    luminance_scale: Float[Array, ""] = eqx.field(converter=_float)
+    field_luminance_cd_m2: Float[Array, ""] = eqx.field(converter=as_float)
+    luminance_scale: Float[Array, ""] = eqx.field(converter=as_float)
     fps: float = eqx.field(static=True)
     lids_move: bool = eqx.field(static=True, default=True)
     psf_scale_deg: float = eqx.field(static=True, default=0.0)
@@ -554,7 +537,7 @@ class TemporalGlare(eqx.Module):
         **Returns:** the state after the last frame, and the PSFs.
         """
         check_n_frames(n_frames)
-        lum = self.field_luminance_cd_m2 if luminance_cd_m2 is None else _float(luminance_cd_m2)
+        lum = self.field_luminance_cd_m2 if luminance_cd_m2 is None else as_float(luminance_cd_m2)
         lum = jnp.broadcast_to(lum, (n_frames,))
         state = self.init_state(lum[0]) if state is None else state
         static = self.sequence_constants()

@@ -66,6 +66,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
+from invglare._core.checks import as_float, choose
 from invglare.errors import ConfigError, PhysicsRangeError
 from invglare.models.veiling_ghosts import GhostSet, LensGhosts, check_light_angle
 from invglare.models.veiling_series import (
@@ -88,19 +89,6 @@ __all__ = [
 
 #: How negative lobes of the series are handled.
 POSITIVITY = ("clip", "none")
-
-
-def _float(x) -> Array:
-    arr = jnp.asarray(x)
-    if not jnp.issubdtype(arr.dtype, jnp.floating):
-        arr = arr.astype(jnp.result_type(float))
-    return arr
-
-
-def _choose(name: str, value: str, valid: tuple[str, ...]) -> str:
-    if value not in valid:
-        raise ConfigError(f"{name} = {value!r} is not one of {', '.join(valid)}")
-    return value
 
 
 def _screen_shape(npix) -> tuple[int, int]:
@@ -138,7 +126,7 @@ class VeilingGlare(eqx.Module):
     """
 
     ghosts: GhostSet | LensGhosts
-    sigma_strength: Float[Array, ""] = eqx.field(converter=_float)
+    sigma_strength: Float[Array, ""] = eqx.field(converter=as_float)
     npix: tuple[int, int] = eqx.field(static=True)
     pixel_scale_deg: float = eqx.field(static=True)
     n_harmonics: int = eqx.field(static=True)
@@ -149,16 +137,16 @@ class VeilingGlare(eqx.Module):
     quadrature_nodes: int = eqx.field(static=True, default=48)
     chunk: int | None = eqx.field(static=True, default=None)
     period_factor: float = eqx.field(static=True, default=2.0)
-    light_angle_deg: Float[Array, " 2"] = eqx.field(converter=_float, default=(0.0, 0.0))
+    light_angle_deg: Float[Array, " 2"] = eqx.field(converter=as_float, default=(0.0, 0.0))
 
     def __check_init__(self):
         if not isinstance(self.ghosts, GhostSet | LensGhosts):
             raise ConfigError(
                 "ghosts must be a GhostSet or LensGhosts, got " + type(self.ghosts).__name__
             )
-        _choose("profile", self.profile, PROFILES)
-        _choose("window", self.window, WINDOWS)
-        _choose("positivity", self.positivity, POSITIVITY)
+        choose("profile", self.profile, PROFILES)
+        choose("window", self.window, WINDOWS)
+        choose("positivity", self.positivity, POSITIVITY)
         if not isinstance(self.sigma_strength, jax.core.Tracer):
             s = np.asarray(self.sigma_strength, dtype=float)
             if s.shape != () or not np.isfinite(s) or s < 0:
@@ -236,9 +224,9 @@ class VeilingGlare(eqx.Module):
             npix=shape,
             pixel_scale_deg=scale,
             n_harmonics=int(n_harmonics),
-            profile=_choose("profile", profile, PROFILES),
-            window=_choose("window", window, WINDOWS),
-            positivity=_choose("positivity", positivity, POSITIVITY),
+            profile=choose("profile", profile, PROFILES),
+            window=choose("window", window, WINDOWS),
+            positivity=choose("positivity", positivity, POSITIVITY),
             pixel_average=bool(pixel_average),
             quadrature_nodes=int(quadrature_nodes),
             chunk=chunk,
@@ -276,7 +264,7 @@ class VeilingGlare(eqx.Module):
     # ----------------------------------------------------------------------------- outputs
 
     def _angle(self, light_angle_deg: Float[ArrayLike, " 2"] | None) -> Float[Array, " 2"]:
-        return self.light_angle_deg if light_angle_deg is None else _float(light_angle_deg)
+        return self.light_angle_deg if light_angle_deg is None else as_float(light_angle_deg)
 
     def ghosts_at(self, light_angle_deg: Float[ArrayLike, " 2"] | None = None) -> GhostSet:
         """The ghosts (positions, radii, intensities) for a light at `light_angle_deg`."""
@@ -404,7 +392,7 @@ class VeilingGlare(eqx.Module):
         frames = eqx.filter_jit(model.batch)(path)   # (48, ny, nx)
         ```
         """
-        angles = _float(light_angles_deg)
+        angles = as_float(light_angles_deg)
         check_light_angle(angles, batched=True)
         if batch_size is None:
             return jax.vmap(self._image)(angles)
@@ -498,7 +486,7 @@ def veiling_glare_index(
                               direct_fraction=model.direct_fraction())
     ```
     """
-    g = _float(gsf)
+    g = as_float(gsf)
     if g.ndim != 2:
         raise PhysicsRangeError(f"gsf must be a 2-D image, got shape {g.shape}")
     scale = float(pixel_scale_deg)
@@ -517,12 +505,12 @@ def veiling_glare_index(
     rows = jnp.arange(ny, dtype=g.dtype)[:, None] - cy
     cols = jnp.arange(nx, dtype=g.dtype)[None, :] - cx
     distance = jnp.sqrt(rows**2 + cols**2)
-    spot = _disk_weight(distance, _float(spot_radius_deg) / scale)
+    spot = _disk_weight(distance, as_float(spot_radius_deg) / scale)
     field = (
         jnp.ones_like(g)
         if field_radius_deg is None
-        else _disk_weight(distance, _float(field_radius_deg) / scale)
+        else _disk_weight(distance, as_float(field_radius_deg) / scale)
     )
     field = jnp.maximum(field, spot)  # a spot larger than the field: the field is the spot
     veiled = jnp.sum(g * (field - spot))
-    return veiled / (_float(direct_fraction) + jnp.sum(g * field))
+    return veiled / (as_float(direct_fraction) + jnp.sum(g * field))

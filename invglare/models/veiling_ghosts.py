@@ -34,27 +34,16 @@ from __future__ import annotations
 from typing import Any
 
 import equinox as eqx
-import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
+from invglare._core.checks import as_float, is_concrete
 from invglare.errors import ConfigError, PhysicsRangeError
 from invglare.models.veiling_series import PROFILES, profile_area
 from invglare.optics.paraxial import Lens, ghost_paths, ghost_spots
 
 __all__ = ["GhostSet", "LensGhosts", "check_light_angle"]
-
-
-def _float(x) -> Array:
-    arr = jnp.asarray(x)
-    if not jnp.issubdtype(arr.dtype, jnp.floating):
-        arr = arr.astype(jnp.result_type(float))
-    return arr
-
-
-def _is_concrete(x) -> bool:
-    return not isinstance(x, jax.core.Tracer)
 
 
 def check_light_angle(light_angle_deg: Array, batched: bool = False) -> None:
@@ -65,7 +54,7 @@ def check_light_angle(light_angle_deg: Array, batched: bool = False) -> None:
         raise PhysicsRangeError(
             f"light_angle_deg must have shape {expected} (x, y angles in deg), got {arr.shape}"
         )
-    if not _is_concrete(arr):
+    if not is_concrete(arr):
         return
     values = np.asarray(arr, dtype=float)
     if not np.all(np.isfinite(values)) or np.any(np.abs(values) >= 90.0):
@@ -90,7 +79,7 @@ def _check_ghost_values(ghosts: GhostSet) -> None:
                 f"ghost {name} must have shape {shape if k is not None else '(K,)'}, "
                 f"got {value.shape}"
             )
-    if not all(_is_concrete(v) for v, _ in shapes.values()):
+    if not all(is_concrete(v) for v, _ in shapes.values()):
         return
     arrays = {name: np.asarray(v, dtype=float) for name, (v, _) in shapes.items()}
     for name, arr in arrays.items():
@@ -126,12 +115,12 @@ class GhostSet(eqx.Module):
     Build one with :meth:`build`, which broadcasts scalars.
     """
 
-    position_deg: Float[Array, "K 2"] = eqx.field(converter=_float)
-    radius_deg: Float[Array, " K"] = eqx.field(converter=_float)
-    intensity_per_sr: Float[Array, " K"] = eqx.field(converter=_float)
-    softness_deg: Float[Array, " K"] = eqx.field(converter=_float)
-    ratio: Float[Array, " K"] = eqx.field(converter=_float)
-    transmission: Float[Array, ""] = eqx.field(converter=_float, default=1.0)
+    position_deg: Float[Array, "K 2"] = eqx.field(converter=as_float)
+    radius_deg: Float[Array, " K"] = eqx.field(converter=as_float)
+    intensity_per_sr: Float[Array, " K"] = eqx.field(converter=as_float)
+    softness_deg: Float[Array, " K"] = eqx.field(converter=as_float)
+    ratio: Float[Array, " K"] = eqx.field(converter=as_float)
+    transmission: Float[Array, ""] = eqx.field(converter=as_float, default=1.0)
 
     def __check_init__(self):
         _check_ghost_values(self)
@@ -164,7 +153,7 @@ class GhostSet(eqx.Module):
                                 softness_deg=0.05, ratio=[0.3, -0.8])
         ```
         """
-        position = _float(position_deg)
+        position = as_float(position_deg)
         if position.ndim != 2 or position.shape[-1] != 2:
             raise PhysicsRangeError(
                 f"position_deg must have shape (K, 2), got {tuple(position.shape)}"
@@ -172,7 +161,7 @@ class GhostSet(eqx.Module):
         k = position.shape[0]
 
         def per_ghost(name, value):
-            arr = _float(value)
+            arr = as_float(value)
             if arr.ndim == 0:
                 return jnp.full((k,), arr)
             if arr.shape != (k,):
@@ -200,7 +189,7 @@ class GhostSet(eqx.Module):
         `profile` is accepted for symmetry with :meth:`LensGhosts.at` and unused:
         the intensities are given directly.
         """
-        angle = _float(light_angle_deg)
+        angle = as_float(light_angle_deg)
         moved = self.position_deg + self.ratio[:, None] * angle[None, :]
         return eqx.tree_at(
             lambda g: (g.position_deg, g.ratio), self, (moved, jnp.zeros_like(self.ratio))
@@ -217,7 +206,7 @@ class GhostSet(eqx.Module):
 
 
 def _check_scalar(name: str, value, lo: float, unit: str) -> None:
-    if not _is_concrete(value):
+    if not is_concrete(value):
         return
     arr = np.asarray(value, dtype=float)
     if arr.shape != () or not np.isfinite(arr) or arr < lo:
@@ -246,8 +235,8 @@ class LensGhosts(eqx.Module):
     """
 
     lens: Lens
-    softness_deg: Float[Array, ""] = eqx.field(converter=_float)
-    min_radius_deg: Float[Array, ""] = eqx.field(converter=_float)
+    softness_deg: Float[Array, ""] = eqx.field(converter=as_float)
+    min_radius_deg: Float[Array, ""] = eqx.field(converter=as_float)
     paths: tuple[tuple[int, ...], ...] = eqx.field(static=True)
 
     def __check_init__(self):
@@ -306,7 +295,7 @@ class LensGhosts(eqx.Module):
 
         Energies are fractions of the flux an on-axis source sends into the lens.
         """
-        angle = _float(light_angle_deg)
+        angle = as_float(light_angle_deg)
         slope = jnp.tan(jnp.deg2rad(angle))
         centre_mm, radius_mm, energy = ghost_spots(self.lens, self.paths, slope)
         centre_deg, radius_rad = self._to_screen(centre_mm, radius_mm)
@@ -336,7 +325,7 @@ class LensGhosts(eqx.Module):
 
     def direct_fraction(self, light_angle_deg: Float[ArrayLike, " 2"] = (0.0, 0.0)) -> Array:
         """Share of the light in the direct image: Fresnel losses times paraxial vignetting."""
-        slope = jnp.tan(jnp.deg2rad(_float(light_angle_deg)))
+        slope = jnp.tan(jnp.deg2rad(as_float(light_angle_deg)))
         return ghost_spots(self.lens, ((),), slope)[2][0]
 
 

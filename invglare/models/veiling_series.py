@@ -70,6 +70,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
+from invglare._core.checks import as_float, choose
 from invglare.errors import ConfigError
 from invglare.optics.bessel import jinc
 
@@ -105,17 +106,6 @@ _UNIT_AREA = {
 }
 
 
-def _float(x) -> Array:
-    arr = jnp.asarray(x)
-    if not jnp.issubdtype(arr.dtype, jnp.floating):
-        arr = arr.astype(jnp.result_type(float))
-    return arr
-
-
-def _check_choice(name: str, value: str, valid: tuple[str, ...]) -> None:
-    if value not in valid:
-        raise ConfigError(f"{name} = {value!r} is not one of {', '.join(valid)}")
-
 
 def _check_harmonics(n_harmonics) -> int:
     if isinstance(n_harmonics, bool) or not isinstance(n_harmonics, int | np.integer):
@@ -137,7 +127,7 @@ def profile_area(profile: str) -> float:
     profile_area("disk")   # pi
     ```
     """
-    _check_choice("profile", profile, PROFILES)
+    choose("profile", profile, PROFILES)
     return _UNIT_AREA[profile]
 
 
@@ -157,8 +147,8 @@ def profile_values(
     profile_values("hat", 0.0, 1.0)   # 1.0, the peak
     ```
     """
-    _check_choice("profile", profile, PROFILES)
-    u = jnp.abs(_float(r)) / _float(radius)
+    choose("profile", profile, PROFILES)
+    u = jnp.abs(as_float(r)) / as_float(radius)
     inside = u < 1.0
     uc = jnp.clip(u, 0.0, 1.0)
     if profile == "disk":
@@ -167,7 +157,7 @@ def profile_values(
         shape = (2.0 / math.pi) * (jnp.arccos(uc) - uc * jnp.sqrt(1.0 - uc * uc))
     else:
         shape = 0.5 * (1.0 + jnp.cos(math.pi * uc))
-    return jnp.where(inside, shape, 0.0) * _float(intensity)
+    return jnp.where(inside, shape, 0.0) * as_float(intensity)
 
 
 # Where the "cosine" quadrature's spectrum is tapered off, in units of the node count.
@@ -211,9 +201,9 @@ def radial_spectrum(
     radial_spectrum("disk", 0.0, 2.0, 1.0)   # 4 pi: the disk's area
     ```
     """
-    _check_choice("profile", profile, PROFILES)
-    nu, radius = _float(nu), _float(radius)
-    intensity, softness = _float(intensity), _float(softness)
+    choose("profile", profile, PROFILES)
+    nu, radius = as_float(nu), as_float(radius)
+    intensity, softness = as_float(intensity), as_float(softness)
     if profile == "disk":
         shape = math.pi * radius**2 * jinc(2.0 * math.pi * nu * radius)
     elif profile == "hat":
@@ -294,7 +284,7 @@ def boxcar_coefficients(
     ```
     """
     n = jnp.arange(_check_harmonics(n_harmonics) + 1)
-    intensity, r = _float(intensity), _float(half_width)
+    intensity, r = as_float(intensity), as_float(half_width)
     w = 2.0 * math.pi / period
     safe_n = jnp.where(n == 0, 1, n)
     a = 4.0 * intensity * jnp.sin(safe_n * w * r) / (safe_n * w * period)
@@ -328,7 +318,7 @@ def ghost_coefficients(
     ```
     """
     n = _check_harmonics(n_harmonics)
-    intensity, radius, softness = _float(intensity), _float(radius), _float(softness)
+    intensity, radius, softness = as_float(intensity), as_float(radius), as_float(softness)
     wx, wy = _separable_weights(intensity, softness, n, period)
     spectrum = _unit_spectrum(profile, radius, n, period, quadrature_nodes)
     return spectrum * wx[:, :, None] * wy[:, None, :]
@@ -387,7 +377,7 @@ def translate_coefficients(
     moved = translate_coefficients(a, None, jnp.array([[3.0, -1.0]]), 200.0)
     ```
     """
-    position = _float(position)
+    position = as_float(position)
     n = a.shape[-2] - 1
     if a.shape[-1] != a.shape[-2]:
         raise ConfigError(f"coefficients must be square (N+1, N+1), got shape {a.shape}")
@@ -448,8 +438,8 @@ def aggregate_coefficients(
     ```
     """
     n = _check_harmonics(n_harmonics)
-    intensity, radius = _float(intensity), _float(radius)
-    softness, position = _float(softness), _float(position)
+    intensity, radius = as_float(intensity), as_float(radius)
+    softness, position = as_float(softness), as_float(position)
     dtype = jnp.result_type(intensity, radius, softness, position)
     k = intensity.shape[0]
     if not (radius.shape == softness.shape == (k,) and position.shape == (k, 2)):
@@ -528,8 +518,8 @@ def sigma_factors(
     ```
     """
     n = _check_harmonics(n_harmonics)
-    _check_choice("window", window, WINDOWS)
-    strength = _float(strength)
+    choose("window", window, WINDOWS)
+    strength = as_float(strength)
     t = jnp.arange(n + 1, dtype=strength.dtype) / (n + 1)
     base = jnp.sinc(t) if window == "lanczos" else 1.0 - t
     # base > 0 for t < 1; the power keeps strength differentiable.
@@ -548,7 +538,7 @@ def pixel_average_factors(
     ```
     """
     n = _check_harmonics(n_harmonics)
-    pitch = _float(pitch)
+    pitch = as_float(pitch)
     # jnp.sinc is sin(pi t) / (pi t): with t = n p / lam this is sin(n w p / 2) / (n w p / 2).
     return jnp.sinc(jnp.arange(n + 1, dtype=pitch.dtype) * pitch / period)
 
@@ -571,7 +561,7 @@ def basis_matrices(
     ```
     """
     n = _check_harmonics(n_harmonics)
-    coords = _float(coords)
+    coords = as_float(coords)
     phase = (2.0 * math.pi / period) * coords[:, None] * jnp.arange(n + 1, dtype=coords.dtype)
     c, s = jnp.cos(phase), jnp.sin(phase)
     if weights is not None:
@@ -638,7 +628,7 @@ def evaluate_direct(
     ```
     """
     n = coeffs.A.shape[0] - 1
-    x, y = _float(x), _float(y)
+    x, y = as_float(x), as_float(y)
     k = jnp.arange(n + 1, dtype=x.dtype)
     w = 2.0 * math.pi / period
     wx = jnp.ones(n + 1, x.dtype) if weights_x is None else jnp.asarray(weights_x, x.dtype)

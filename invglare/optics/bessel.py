@@ -28,6 +28,8 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
+from invglare._core.checks import as_float
+
 __all__ = ["bessel_j1", "jinc"]
 
 _SWITCH = 17.0
@@ -37,13 +39,6 @@ _HANKEL_TERMS = 20
 # Hankel terms at x = 17 fall below those levels after these counts).
 _CHEB_TERMS = {True: 17, False: 23}
 _HANKEL_PQ_TERMS = {True: 4, False: 10}
-
-
-def _float(x) -> Array:
-    arr = jnp.asarray(x)
-    if not jnp.issubdtype(arr.dtype, jnp.floating):
-        arr = arr.astype(jnp.result_type(float))
-    return arr
 
 
 # ------------------------------------------------------------------------------ coefficients
@@ -186,7 +181,7 @@ def jinc(x: Float[ArrayLike, "*shape"]) -> Float[Array, "*shape"]:
     jinc(jnp.array([0.0, 3.8317]))   # [1, ~0]: the first zero of J1
     ```
     """
-    return _jinc(_float(x))
+    return _jinc(as_float(x))
 
 
 def bessel_j1(x: Float[ArrayLike, "*shape"]) -> Float[Array, "*shape"]:
@@ -198,5 +193,5 @@ def bessel_j1(x: Float[ArrayLike, "*shape"]) -> Float[Array, "*shape"]:
     bessel_j1(jnp.array([0.0, 1.0, 3.8317]))   # [0, 0.44005, ~0]
     ```
     """
-    x = _float(x)
+    x = as_float(x)
     return 0.5 * x * _jinc(x)

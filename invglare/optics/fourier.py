@@ -1,6 +1,6 @@
 """Discrete Fourier transforms on centred grids: FFT helpers and the matrix Fourier transform.
 
-All transforms follow the centring convention of :mod:`invglare.optics.sampling`:
+All transforms follow the centring convention of :mod:`invglare._core.grids`:
 index ``n // 2`` is the origin on both the input and the output grid. With that
 convention the FFT of a field zero-padded to ``m`` samples and the matrix Fourier
 transform (MFT) evaluated at frequencies ``(k - m // 2) / (m * pitch)`` are the

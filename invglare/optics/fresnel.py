@@ -21,9 +21,9 @@ from __future__ import annotations
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Complex, Float, Inexact
 
+from invglare._core.grids import AngularGrid, ApertureGrid, nm_to_mm, rad_to_deg
 from invglare.optics.fourier import crop_centred, pad_centred
 from invglare.optics.fraunhofer import fraunhofer_mft, intensity_fft
-from invglare.optics.sampling import AngularGrid, ApertureGrid, nm_to_mm, rad_to_deg
 
 TRANSFER_FUNCTIONS = ("exact", "fresnel")
 

@@ -71,6 +71,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
+from invglare._core.checks import as_float, is_concrete
 from invglare.errors import ConfigError, PhysicsRangeError
 
 __all__ = [
@@ -94,17 +95,6 @@ _NO_CLIP_MM = 1.0e6
 _TIE_SHARPNESS = 100.0
 
 
-def _float(x) -> Array:
-    arr = jnp.asarray(x)
-    if not jnp.issubdtype(arr.dtype, jnp.floating):
-        arr = arr.astype(jnp.result_type(float))
-    return arr
-
-
-def _is_concrete(x) -> bool:
-    return not isinstance(x, jax.core.Tracer)
-
-
 # ------------------------------------------------------------------------------ matrices
 
 
@@ -117,7 +107,7 @@ def transfer_matrix(distance_mm: Float[ArrayLike, ""]) -> Float[Array, "2 2"]:
     transfer_matrix(10.0) @ jnp.array([1.0, 0.1])   # height 1 mm -> 2 mm
     ```
     """
-    d = _float(distance_mm)
+    d = as_float(distance_mm)
     one, zero = jnp.ones_like(d), jnp.zeros_like(d)
     return jnp.stack([jnp.stack([one, d]), jnp.stack([zero, one])])
 
@@ -145,9 +135,9 @@ def refraction_matrix(
     refraction_matrix(1 / 50.0, 1.0, 1.5)
     ```
     """
-    c = _float(curvature_per_mm)
+    c = as_float(curvature_per_mm)
     c = -c if backward else c
-    n1, n2 = _float(n_from), _float(n_to)
+    n1, n2 = as_float(n_from), as_float(n_to)
     one, zero = jnp.ones_like(c * n1), jnp.zeros_like(c * n1)
     return jnp.stack([jnp.stack([one, zero]), jnp.stack([-c * (n2 - n1) / n2, n1 / n2])])
 
@@ -167,7 +157,7 @@ def reflection_matrix(
     reflection_matrix(-1 / 100.0)   # concave mirror of focal length 50 mm
     ```
     """
-    c = _float(curvature_per_mm)
+    c = as_float(curvature_per_mm)
     c = -c if backward else c
     one, zero = jnp.ones_like(c), jnp.zeros_like(c)
     return jnp.stack([jnp.stack([one, zero]), jnp.stack([2.0 * c, one])])
@@ -199,7 +189,7 @@ def _check_lens_values(lens: Lens) -> None:
         raise PhysicsRangeError("a lens needs at least one surface, got none")
     if not 0 <= lens.stop_index < n:
         raise ConfigError(f"stop_index = {lens.stop_index} is not a surface (0..{n - 1})")
-    if not all(_is_concrete(v) for v in [*fields.values(), lens.sensor_reflectance]):
+    if not all(is_concrete(v) for v in [*fields.values(), lens.sensor_reflectance]):
         return
     values = {k: np.asarray(v, dtype=float) for k, v in fields.items()}
     for name, arr in values.items():
@@ -245,12 +235,12 @@ class Lens(eqx.Module):
     Build one with :meth:`from_radii` when you have radii of curvature.
     """
 
-    curvature_per_mm: Float[Array, " S"] = eqx.field(converter=_float)
-    thickness_mm: Float[Array, " S"] = eqx.field(converter=_float)
-    index: Float[Array, " S"] = eqx.field(converter=_float)
-    semi_aperture_mm: Float[Array, " S"] = eqx.field(converter=_float)
-    reflectance: Float[Array, " S"] = eqx.field(converter=_float)
-    sensor_reflectance: Float[Array, ""] = eqx.field(converter=_float, default=0.0)
+    curvature_per_mm: Float[Array, " S"] = eqx.field(converter=as_float)
+    thickness_mm: Float[Array, " S"] = eqx.field(converter=as_float)
+    index: Float[Array, " S"] = eqx.field(converter=as_float)
+    semi_aperture_mm: Float[Array, " S"] = eqx.field(converter=as_float)
+    reflectance: Float[Array, " S"] = eqx.field(converter=as_float)
+    sensor_reflectance: Float[Array, ""] = eqx.field(converter=as_float, default=0.0)
     stop_index: int = eqx.field(static=True, default=0)
     object_index: float = eqx.field(static=True, default=1.0)
     name: str = eqx.field(static=True, default="")
@@ -508,7 +498,7 @@ def circle_overlap_area(
     circle_overlap_area(1.0, 1.0, 0.0)   # pi
     ```
     """
-    r1, r2, d = _float(r1), _float(r2), _float(d)
+    r1, r2, d = as_float(r1), as_float(r2), as_float(d)
     small, big = jnp.minimum(r1, r2), jnp.maximum(r1, r2)
     inside = d <= big - small
     apart = d >= r1 + r2
@@ -623,7 +613,7 @@ def ghost_spots(
     centre, radius, energy = ghost_spots(lens, paths, jnp.tan(jnp.deg2rad(jnp.array([5.0, 0.0]))))
     ```
     """
-    slope = _float(slope)
+    slope = as_float(slope)
     all_paths = ((), *paths)
     m, rows, semi, clips, factor = _trace_paths(lens, all_paths)
     p_e, q_e = rows[..., 0], rows[..., 1]  # (P, L)

@@ -16,10 +16,10 @@ import equinox as eqx
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float, Inexact
 
+from invglare._core.grids import AngularGrid, ApertureGrid, check_positive
 from invglare.errors import ConfigError, PhysicsRangeError
 from invglare.optics.fraunhofer import fraunhofer_mft, intensity_fft
 from invglare.optics.fresnel import fresnel_phase
-from invglare.optics.sampling import AngularGrid, ApertureGrid, check_positive
 
 PROPAGATIONS = ("fraunhofer", "fresnel")
 METHODS = ("auto", "fft", "mft")

@@ -24,6 +24,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
+from invglare._core.checks import as_float, is_concrete
 from invglare.errors import PhysicsRangeError
 
 __all__ = [
@@ -50,20 +51,9 @@ PIGMENTATION_RANGE = (0.0, 1.2)
 SPENCER_PHOTOPIC_WEIGHTS = (0.384, 0.478, 0.138)
 
 
-def _is_concrete(x) -> bool:
-    return not isinstance(x, jax.core.Tracer)
-
-
-def _as_float(x: ArrayLike) -> Array:
-    arr = jnp.asarray(x)
-    if not jnp.issubdtype(arr.dtype, jnp.floating):
-        arr = arr.astype(float)
-    return arr
-
-
 def _check_interval(name: str, value, lo: float, hi: float, unit: str, hint: str = "") -> None:
     """Raise `PhysicsRangeError` naming the first element of concrete `value` outside [lo, hi]."""
-    if not _is_concrete(value):
+    if not is_concrete(value):
         return
     arr = np.atleast_1d(np.asarray(value, dtype=float))
     bad = ~np.isfinite(arr) | (arr < lo) | (arr > hi)
@@ -78,7 +68,7 @@ def _check_interval(name: str, value, lo: float, hi: float, unit: str, hint: str
 
 
 def _check_angles(name: str, theta, lo: float, hi: float, what: str, extrapolate: bool) -> None:
-    if not _is_concrete(theta):
+    if not is_concrete(theta):
         return
     arr = np.atleast_1d(np.asarray(theta, dtype=float))
     if not np.all(np.isfinite(arr)):
@@ -166,7 +156,7 @@ def cie_gsf(
         "",
         " (0 very dark eyes, 0.5 brown, 1.0 blue-green, 1.2 very light)",
     )
-    return _cie_gsf(_as_float(theta_deg), _as_float(age), _as_float(pigmentation))
+    return _cie_gsf(as_float(theta_deg), as_float(age), as_float(pigmentation))
 
 
 # Jitted so that eager callers compile one program rather than each operation.
@@ -222,14 +212,14 @@ def stiles_holladay(
         "the Stiles-Holladay law",
         extrapolate,
     )
-    if _is_concrete(theta_deg) and np.any(np.asarray(theta_deg, dtype=float) == 0):
+    if is_concrete(theta_deg) and np.any(np.asarray(theta_deg, dtype=float) == 0):
         raise PhysicsRangeError("theta_deg = 0: the Stiles-Holladay law diverges at 0 deg")
-    theta = _as_float(theta_deg)
+    theta = as_float(theta_deg)
     value = 10.0 / (theta * theta)
     if age is None:
         return value
     _check_interval("age", age, *AGE_RANGE_YEARS, "years")
-    return value * (1.0 + (_as_float(age) / 62.5) ** 4)
+    return value * (1.0 + (as_float(age) / 62.5) ** 4)
 
 
 def spencer_1995_psf(
@@ -275,7 +265,7 @@ def spencer_1995_psf(
     """
     if len(weights) != 3:
         raise ValueError(f"weights must hold 3 numbers (f0, f1, f2), got {weights!r}")
-    theta = jnp.abs(_as_float(theta_deg))
+    theta = jnp.abs(as_float(theta_deg))
     w0, w1, w2 = weights
     f0 = 2.61e6 * jnp.exp(-((theta / 0.02) ** 2))
     shifted = theta + 0.02

@@ -15,7 +15,7 @@ pixel solid angle, so ``I(theta_k) * dtheta²`` is directly comparable with a
 ``sin theta / lambda``), as in the propagators.
 
 Units: aperture sizes in mm, wavelengths in nm, angles in rad (the sampling
-module's internal unit; convert degrees with `invglare.optics.sampling.deg_to_rad`).
+module's internal unit; convert degrees with `invglare._core.grids.deg_to_rad`).
 
 All functions except :func:`fresnel_square_intensity` are pure `jax.numpy`
 (differentiable, `jit`/`vmap`-able); they keep the input dtype and are accurate
@@ -31,13 +31,14 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Complex, Float
 
-from invglare.optics.bessel import bessel_j1, jinc
-from invglare.optics.sampling import (
+from invglare._core.checks import as_float
+from invglare._core.grids import (
     AngularGrid,
     check_positive,
     check_wavelengths_nm,
     nm_to_mm,
 )
+from invglare.optics.bessel import bessel_j1, jinc
 
 __all__ = [
     "airy_encircled_energy",
@@ -52,13 +53,6 @@ __all__ = [
     "rect_psf",
     "regular_polygon_vertices",
 ]
-
-
-def _as_float(x: ArrayLike) -> Array:
-    arr = jnp.asarray(x)
-    if not jnp.issubdtype(arr.dtype, jnp.floating):
-        arr = arr.astype(float)
-    return arr
 
 
 # ------------------------------------------------------------------------------ Airy
@@ -100,9 +94,9 @@ def airy_psf(
     ```
     """
     _check_aperture("diameter_mm", diameter_mm, wavelength_nm)
-    lam = nm_to_mm(_as_float(wavelength_nm))
-    d = _as_float(diameter_mm)
-    v = math.pi * d * _as_float(theta_rad) / lam
+    lam = nm_to_mm(as_float(wavelength_nm))
+    d = as_float(diameter_mm)
+    v = math.pi * d * as_float(theta_rad) / lam
     return (math.pi * d * d / (4.0 * lam * lam)) * jinc(v) ** 2
 
 
@@ -174,8 +168,8 @@ def airy_encircled_energy(
     ```
     """
     _check_aperture("diameter_mm", diameter_mm, wavelength_nm)
-    lam = nm_to_mm(_as_float(wavelength_nm))
-    v = jnp.abs(math.pi * _as_float(diameter_mm) * _as_float(theta_rad) / lam)
+    lam = nm_to_mm(as_float(wavelength_nm))
+    v = jnp.abs(math.pi * as_float(diameter_mm) * as_float(theta_rad) / lam)
     j1 = bessel_j1(v)
     # J1 acts elementwise, so a JVP with unit tangents is its derivative at every point.
     _, dj1 = jax.jvp(bessel_j1, (v,), (jnp.ones_like(v),))
@@ -209,11 +203,11 @@ def rect_psf(
     """
     _check_aperture("width_mm", width_mm, wavelength_nm)
     check_positive("height_mm", height_mm, "mm")
-    lam = nm_to_mm(_as_float(wavelength_nm))
-    a = _as_float(width_mm)
-    b = _as_float(height_mm)
-    sx = jnp.sinc(a * _as_float(theta_x_rad) / lam)
-    sy = jnp.sinc(b * _as_float(theta_y_rad) / lam)
+    lam = nm_to_mm(as_float(wavelength_nm))
+    a = as_float(width_mm)
+    b = as_float(height_mm)
+    sx = jnp.sinc(a * as_float(theta_x_rad) / lam)
+    sy = jnp.sinc(b * as_float(theta_y_rad) / lam)
     return (a * b / (lam * lam)) * (sx * sx) * (sy * sy)
 
 
@@ -297,14 +291,14 @@ def regular_polygon_vertices(
     """
     if n < 3:
         raise ValueError(f"a polygon needs n >= 3 vertices, got {n}")
-    phi = jnp.deg2rad(_as_float(rotation_deg)) + 2.0 * math.pi * jnp.arange(n) / n
-    r = 0.5 * _as_float(diameter_mm)
+    phi = jnp.deg2rad(as_float(rotation_deg)) + 2.0 * math.pi * jnp.arange(n) / n
+    r = 0.5 * as_float(diameter_mm)
     return jnp.stack([r * jnp.cos(phi), r * jnp.sin(phi)], axis=-1)
 
 
 def polygon_area_mm2(vertices_mm: Float[ArrayLike, "n 2"]) -> Float[Array, ""]:
     """Signed area (mm²) by the shoelace formula: positive for counter-clockwise vertices."""
-    v = _as_float(vertices_mm)
+    v = as_float(vertices_mm)
     w = jnp.roll(v, -1, axis=0)
     return 0.5 * jnp.sum(v[:, 0] * w[:, 1] - v[:, 1] * w[:, 0])
 
@@ -367,7 +361,7 @@ def polygon_fourier_transform(
     Propag. 31(1), 1983.
     """
     _check_vertices(vertices_mm)
-    return _polygon_ft(_as_float(fx_per_mm), _as_float(fy_per_mm), _as_float(vertices_mm))
+    return _polygon_ft(as_float(fx_per_mm), as_float(fy_per_mm), as_float(vertices_mm))
 
 
 @jax.jit
@@ -448,9 +442,9 @@ def polygon_far_field(
     ```
     """
     check_wavelengths_nm(wavelength_nm)
-    lam = nm_to_mm(_as_float(wavelength_nm))
-    tx = _as_float(theta_x_rad)
-    ty = _as_float(theta_y_rad)
+    lam = nm_to_mm(as_float(wavelength_nm))
+    tx = as_float(theta_x_rad)
+    ty = as_float(theta_y_rad)
     f = polygon_fourier_transform(tx / lam, ty / lam, vertices_mm)
     area = jnp.abs(polygon_area_mm2(vertices_mm))
     return (jnp.real(f) ** 2 + jnp.imag(f) ** 2) / (lam * lam * area)

@@ -5,7 +5,7 @@ Two representations of a rotationally symmetric glare function meet here:
 - a **GSF** (glare spread function): a 1-D function of the angle from the source
   in degrees, with values in **sr⁻¹** (fraction of the light per steradian) —
   the CIE function, a published table, a measured straylight curve;
-- a **PSF** on an output grid (:class:`invglare.optics.sampling.AngularGrid`):
+- a **PSF** on an output grid (:class:`invglare._core.grids.AngularGrid`):
   a 2-D array holding, per pixel, the **fraction of the light in that pixel**
   — the normalisation of `invglare.optics.fraunhofer` and of every model.
 
@@ -36,9 +36,10 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
+from invglare._core.checks import as_float, is_concrete
+from invglare._core.grids import AngularGrid
 from invglare.aperture.coverage import curved_edge_coverage
 from invglare.errors import ConfigError, InputDataError, PhysicsRangeError
-from invglare.optics.sampling import AngularGrid
 
 __all__ = [
     "NORMALISATIONS",
@@ -56,19 +57,8 @@ NORMALISATIONS = ("none", "unit")
 TABLE_SUFFIXES = (".csv", ".txt", ".tsv", ".dat")
 
 
-def _is_concrete(x) -> bool:
-    return not isinstance(x, jax.core.Tracer)
-
-
-def _as_float(x: ArrayLike) -> Array:
-    arr = jnp.asarray(x)
-    if not jnp.issubdtype(arr.dtype, jnp.floating):
-        arr = arr.astype(float)
-    return arr
-
-
 def _check_scale(pixel_scale_deg) -> None:
-    if not _is_concrete(pixel_scale_deg):
+    if not is_concrete(pixel_scale_deg):
         return
     value = np.asarray(pixel_scale_deg, dtype=float)
     if value.shape != () or not (np.isfinite(value) and value > 0):
@@ -89,7 +79,7 @@ def _centre_and_radius(
     if centre is None:
         cy, cx = jnp.asarray(float(h // 2)), jnp.asarray(float(w // 2))
     else:
-        c = _as_float(centre)
+        c = as_float(centre)
         if c.shape != (2,):
             raise ValueError(f"centre must be (row, col) in pixels, got shape {c.shape}")
         cy, cx = c[0], c[1]
@@ -147,15 +137,15 @@ def radial_profile(
     theta, prof = radial_profile(psf, 0.01, 20, 2.0)    # 20 annuli out to 2 deg
     ```
     """
-    image = _as_float(psf)
+    image = as_float(psf)
     if image.ndim < 2:
         raise ValueError(f"psf must have at least 2 dimensions (h, w), got shape {image.shape}")
     _check_scale(pixel_scale_deg)
-    scale = _as_float(pixel_scale_deg)
+    scale = as_float(pixel_scale_deg)
     _, _, r_px, r_edge = _centre_and_radius(image.shape, centre)
-    r_max_px = r_edge if max_angle_deg is None else _as_float(max_angle_deg) / scale
+    r_max_px = r_edge if max_angle_deg is None else as_float(max_angle_deg) / scale
     if n_bins is None:
-        if not _is_concrete(r_max_px):
+        if not is_concrete(r_max_px):
             raise ValueError("n_bins must be given when max_angle_deg or the pixel scale is traced")
         n_bins = max(math.floor(float(r_max_px) + 1e-9), 1)
     if int(n_bins) < 1:
@@ -218,12 +208,12 @@ def encircled_energy(
     encircled_energy(psf, 0.01, jnp.array([0.05, 0.1, 0.5]))
     ```
     """
-    image = _as_float(psf)
+    image = as_float(psf)
     if image.ndim < 2:
         raise ValueError(f"psf must have at least 2 dimensions (h, w), got shape {image.shape}")
     _check_scale(pixel_scale_deg)
-    scale = _as_float(pixel_scale_deg)
-    radii = _as_float(radii_deg)
+    scale = as_float(pixel_scale_deg)
+    radii = as_float(radii_deg)
     r_out = radii.reshape(-1) / scale
 
     # Outward normal of the circle at each pixel: the radial direction (any unit
@@ -246,7 +236,7 @@ def encircled_energy(
     # One radius at a time keeps memory at one image, not one per radius.
     sums = jax.lax.map(inside, r_out)  # (n_radii, *batch)
     sums = jnp.moveaxis(sums, 0, -1)
-    norm = jnp.sum(image, axis=(-2, -1)) if total is None else _as_float(total)
+    norm = jnp.sum(image, axis=(-2, -1)) if total is None else as_float(total)
     fraction = sums / jnp.asarray(norm)[..., None]
     return fraction.reshape((*image.shape[:-2], *radii.shape))
 
@@ -342,7 +332,7 @@ class RadialTable:
         return bool(self.theta_deg[0] > 0 and np.all(self.values > 0))
 
     def __call__(self, theta_deg: Float[ArrayLike, "*shape"]) -> Float[Array, "*shape"]:
-        t = jnp.abs(_as_float(theta_deg))
+        t = jnp.abs(as_float(theta_deg))
         xp = jnp.asarray(self.theta_deg, dtype=t.dtype)
         fp = jnp.asarray(self.values, dtype=t.dtype)
         if self.log_log:
@@ -459,7 +449,7 @@ def gsf_to_psf(
             fn, coords[lo:hi], coords[lo:hi], scale, int(centre_oversample)
         )
     except PhysicsRangeError as e:
-        span = float(grid.half_field_deg) * math.sqrt(2.0) if _is_concrete(scale) else None
+        span = float(grid.half_field_deg) * math.sqrt(2.0) if is_concrete(scale) else None
         where = f" (the grid spans 0-{span:.4g} deg)" if span is not None else ""
         raise PhysicsRangeError(
             f"{e}{where}; gsf_to_psf evaluates the GSF at every pixel, so wrap it to "
@@ -494,7 +484,7 @@ def psf_to_gsf(
     ```
     """
     theta, mean = radial_profile(psf, pixel_scale_deg, n_bins, max_angle_deg, centre)
-    omega = (_as_float(pixel_scale_deg) * (math.pi / 180.0)) ** 2
+    omega = (as_float(pixel_scale_deg) * (math.pi / 180.0)) ** 2
     return theta, mean / omega
 
 

@@ -208,7 +208,7 @@ def light_angles_deg(
     """``(n, 2)`` (x, y) angles (deg) of the listed pixels from the centre pixel.
 
     The centre pixel ``(H // 2, W // 2)`` is the optical axis; x grows with the
-    column and y with the row, as the coordinates of `invglare.optics.sampling`
+    column and y with the row, as the coordinates of `invglare._core.grids`
     (so a model's PSF for the light at that angle matches the frame's orientation).
 
     **Example:**

@@ -24,9 +24,10 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
+from invglare._core.checks import as_float
+from invglare._core.grids import check_positive
 from invglare.errors import InputDataError, PhysicsRangeError
 from invglare.optics.fourier import materialise
-from invglare.optics.sampling import check_positive
 from invglare.optics.spectral import scale_psf
 
 __all__ = [
@@ -116,13 +117,6 @@ def _channels_first(x: Array, what: str) -> Array:
     raise InputDataError(f"{what} must have shape (H, W) or (H, W, C); got {x.shape}")
 
 
-def _as_float(x: ArrayLike) -> Array:
-    x = jnp.asarray(x)
-    if not jnp.issubdtype(x.dtype, jnp.floating):
-        x = x.astype(jnp.result_type(float))
-    return x
-
-
 def wrap_psf(psf: Float[Array, "c h w"], p: int, q: int) -> Float[Array, "c p q"]:
     """Place a PSF on a `p` x `q` periodic grid with its centre pixel at index (0, 0)."""
     c, h, w = psf.shape
@@ -188,7 +182,7 @@ def convolve_psf(
     """
     if pixel_scales_deg is not None:
         check_compatible_scales(*pixel_scales_deg)
-    image, psf = _as_float(image), _as_float(psf)
+    image, psf = as_float(image), as_float(psf)
     dtype = jnp.result_type(image.dtype, psf.dtype)
     img = _channels_first(image.astype(dtype), "image")
     ker = _channels_first(psf.astype(dtype), "psf")
@@ -333,7 +327,7 @@ def resample_psf(
     psf_img = resample_psf(psf, 0.005, 0.02, 255)   # 4x coarser, 255 x 255 pixels
     ```
     """
-    psf = _as_float(psf)
+    psf = as_float(psf)
     ker = _channels_first(psf, "psf")
     check_positive("from_scale_deg", from_scale_deg, "deg")
     check_positive("to_scale_deg", to_scale_deg, "deg")

@@ -26,8 +26,8 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
+from invglare._core.grids import check_positive
 from invglare.errors import InputDataError
-from invglare.optics.sampling import check_positive
 from invglare.render.billboard import replace_with_billboards
 from invglare.render.bright import BrightPixels, light_angles_deg
 from invglare.render.convolve import resample_psf

@@ -26,6 +26,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float
 
+from invglare._core.checks import as_float
 from invglare.dynamics import DynamicsState
 from invglare.errors import ConfigError, InputDataError
 from invglare.models.temporal import TemporalGlare, check_n_frames, frame_luminance_cd_m2
@@ -57,13 +58,6 @@ OUTPUTS = ("display", "linear")
 def _check_model(model: TemporalGlare) -> None:
     if not isinstance(model, TemporalGlare):
         raise ConfigError(f"expected a TemporalGlare model, got {type(model).__name__}")
-
-
-def _as_float(x: ArrayLike) -> Array:
-    arr = jnp.asarray(x)
-    if not jnp.issubdtype(arr.dtype, jnp.floating):
-        arr = arr.astype(jnp.result_type(float))
-    return arr
 
 
 def frame_psf_npix(model: TemporalGlare, image_scale_deg: float | None, size: int) -> int | None:
@@ -188,7 +182,7 @@ def render_frame(
     `InputDataError` for a frame that does not fit (see :func:`frame_convolver`).
     """
     check_display(model)
-    image = _as_float(image)
+    image = as_float(image)
     if state is None:
         state = model.init_state(frame_luminance_cd_m2(image, model.luminance_scale))
     spectrum, glare = frame_convolver(model, image, image_scale_deg, wrap)
@@ -227,7 +221,7 @@ def render_sequence(
         raise ConfigError(f"output = {output!r} is not one of {', '.join(OUTPUTS)}")
     if output == "display":
         check_display(model)
-    image = _as_float(image)
+    image = as_float(image)
     lum = frame_luminance_cd_m2(image, model.luminance_scale)
     spectrum, glare = frame_convolver(model, image, image_scale_deg, wrap)
     state = model.init_state(lum) if state is None else state

@@ -28,8 +28,9 @@ from typing import NamedTuple
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float
 
+from invglare._core.checks import as_float
+from invglare._core.grids import check_positive
 from invglare.errors import ConfigError, InputDataError, PhysicsRangeError
-from invglare.optics.sampling import check_positive
 from invglare.render.bright import luminance
 
 __all__ = [
@@ -54,13 +55,6 @@ __all__ = [
 
 #: Largest frame-buffer value of the paper's 8-bit display (its [0, 255] range).
 DISPLAY_MAX = 255.0
-
-
-def _float(x: ArrayLike) -> Array:
-    x = jnp.asarray(x)
-    if not jnp.issubdtype(x.dtype, jnp.floating):
-        x = x.astype(jnp.result_type(float))
-    return x
 
 
 def _safe_pow(x: Array, p) -> Array:
@@ -107,7 +101,7 @@ def kakimoto_sigmoid(
     """
     for name, value in (("D", D), ("k", k), ("g", g)):
         check_positive(f"kakimoto_sigmoid {name}", value)
-    x = _float(x)
+    x = as_float(x)
     xg = _safe_pow(jnp.maximum(x, 0), jnp.asarray(g, x.dtype))
     return (xg + 1) / (xg + k) * D
 
@@ -127,7 +121,7 @@ def kakimoto_sigmoid_inverse(
     kakimoto_sigmoid_inverse(255.0)   # ≈ 194: the input that just reaches display white
     ```
     """
-    y = _float(y)
+    y = as_float(y)
     r = y / D
     base = (k * r - 1) / (1 - r)
     valid = (base >= 0) & (r < 1)
@@ -143,7 +137,7 @@ def display_to_unit(
     display_to_unit(kakimoto_sigmoid(1e6))   # 1.0: beyond 255 saturates
     ```
     """
-    return jnp.clip(_float(y) / display_max, 0, 1)
+    return jnp.clip(as_float(y) / display_max, 0, 1)
 
 
 def kakimoto_tonemap(
@@ -169,7 +163,7 @@ def kakimoto_tonemap(
     ```
     """
     check_positive("kakimoto scale", scale)
-    image = _float(image)
+    image = as_float(image)
     return display_to_unit(kakimoto_sigmoid(image * scale, D, k, g))
 
 
@@ -218,7 +212,7 @@ def kakimoto_glare_layers(psf: Float[ArrayLike, "h w *c"], spot_radius_px: float
     layers = kakimoto_glare_layers(psf, 3.0)   # layers.spot + layers.glare ≈ psf
     ```
     """
-    psf = _float(psf)
+    psf = as_float(psf)
     if psf.ndim not in (2, 3):
         raise InputDataError(f"psf must have shape (h, w) or (h, w, C); got {psf.shape}")
     h, w = psf.shape[:2]
@@ -317,7 +311,7 @@ def log_average_luminance(
     `delta` (image units) keeps black pixels from sending the mean to −∞. Negative
     luminance (out-of-gamut colours of a spectral PSF can have it) counts as black.
     """
-    return jnp.exp(jnp.mean(jnp.log(delta + jnp.maximum(luminance(_float(image)), 0.0))))
+    return jnp.exp(jnp.mean(jnp.log(delta + jnp.maximum(luminance(as_float(image)), 0.0))))
 
 
 def reinhard_global(
@@ -358,7 +352,7 @@ def reinhard_global(
     check_positive("reinhard key", key)
     if white is not None:
         check_positive("reinhard white", white, "(image units)")
-    image = _float(image)
+    image = as_float(image)
     lum = jnp.maximum(luminance(image), 0.0)  # negative (out-of-gamut) luminance: black
     gain = key / log_average_luminance(image, delta)
     lm = gain * lum
@@ -392,7 +386,7 @@ def srgb_encode(linear: Float[ArrayLike, "*shape"]) -> Float[Array, "*shape"]:
     srgb_encode(0.18)   # ≈ 0.4614
     ```
     """
-    x = _float(linear)
+    x = as_float(linear)
     power = 1.055 * jnp.maximum(x, 0.0031308) ** (1 / 2.4) - 0.055
     return jnp.where(x <= 0.0031308, 12.92 * x, power)
 
@@ -406,7 +400,7 @@ def srgb_display(
     light, where 1 is display white.
     """
     check_positive("exposure", exposure)
-    return srgb_encode(jnp.clip(_float(image) * exposure, 0, 1))
+    return srgb_encode(jnp.clip(as_float(image) * exposure, 0, 1))
 
 
 def exposure_gamma(
@@ -430,7 +424,7 @@ def exposure_gamma(
     """
     check_positive("exposure", exposure)
     check_positive("gamma", gamma)
-    x = jnp.clip(_float(image) * exposure, 0, 1)
+    x = jnp.clip(as_float(image) * exposure, 0, 1)
     return _safe_pow(x, 1 / jnp.asarray(gamma, x.dtype))
 
 

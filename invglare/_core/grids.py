@@ -1,4 +1,4 @@
-"""Sampling of the aperture plane and of the output (angular) plane.
+"""Grids and units: the aperture plane and the output (angular) plane.
 
 Conventions used throughout invglare:
 
@@ -22,19 +22,15 @@ from __future__ import annotations
 import math
 
 import equinox as eqx
-import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
+from invglare._core.checks import check_positive, is_concrete, shown
 from invglare.errors import PhysicsRangeError
 
 #: Wavelengths outside this range (nm) are refused: they are almost always a unit mistake.
 WAVELENGTH_RANGE_NM = (100.0, 20000.0)
-
-
-def _is_concrete(x) -> bool:
-    return not isinstance(x, jax.core.Tracer)
 
 
 def nm_to_mm(wavelength_nm: ArrayLike) -> Array:
@@ -50,43 +46,28 @@ def rad_to_deg(angle_rad: ArrayLike) -> Array:
     return jnp.asarray(angle_rad) * (180.0 / math.pi)
 
 
-def check_positive(name: str, value, unit: str = "") -> None:
-    """Raise :class:`PhysicsRangeError` unless every element of a concrete `value` is > 0.
-
-    Traced values (inside `jit`) are not checked; validate at the public boundary.
-    """
-    if not _is_concrete(value):
-        return
-    arr = np.asarray(value, dtype=float)
-    if arr.size == 0 or not np.all(np.isfinite(arr)) or np.any(arr <= 0):
-        suffix = f" {unit}" if unit else ""
-        raise PhysicsRangeError(f"{name} must be finite and > 0, got {_fmt(arr)}{suffix}")
-
-
 def check_wavelengths_nm(wavelengths_nm) -> None:
     """Refuse wavelengths that are not in nanometres (e.g. given in metres or micrometres)."""
-    if not _is_concrete(wavelengths_nm):
+    if not is_concrete(wavelengths_nm):
         return
     arr = np.atleast_1d(np.asarray(wavelengths_nm, dtype=float))
     lo, hi = WAVELENGTH_RANGE_NM
     if arr.size == 0:
         raise PhysicsRangeError("wavelengths_nm is empty; expected at least one wavelength in nm")
     if not np.all(np.isfinite(arr)):
-        raise PhysicsRangeError(f"wavelengths_nm must be finite, got {_fmt(arr)}")
+        raise PhysicsRangeError(f"wavelengths_nm must be finite, got {shown(arr)}")
     if np.any((arr < lo) | (arr > hi)):
         bad = arr[(arr < lo) | (arr > hi)][0]
         hint = ""
-        if bad < 1e-3:
+        if bad <= 0:
+            hint = " (a wavelength is a positive length)"
+        elif bad < 1e-3:
             hint = " (it looks like metres: 550 nm is 5.5e-07 m)"
         elif bad < 30:
             hint = " (it looks like micrometres: 550 nm is 0.55 um)"
         raise PhysicsRangeError(
             f"wavelength {bad:g} nm is outside {lo:g}-{hi:g} nm{hint}; give wavelengths in nm"
         )
-
-
-def _fmt(arr: np.ndarray) -> str:
-    return f"{arr.item():g}" if arr.size == 1 else np.array2string(arr, precision=4)
 
 
 class ApertureGrid(eqx.Module):

@@ -39,9 +39,9 @@ def retain_freed_memory() -> bool:
     **Example:**
 
     ```python
-    import invglare.allocator
+    import invglare._core.allocator
 
-    invglare.allocator.retain_freed_memory()  # before the first jitted call
+    invglare._core.allocator.retain_freed_memory()  # before the first jitted call
     ```
     """
     if not sys.platform.startswith("linux") or os.environ.get(ENV_VAR, "") == "default":
