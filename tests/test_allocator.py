@@ -7,7 +7,7 @@ import sys
 
 import pytest
 
-from invglare import allocator
+from invglare._core import allocator
 
 # Allocates, touches and frees 64 MiB twice with the C library's malloc; prints the page
 # faults of the second round (64 MiB is 16384 pages of 4 KiB).

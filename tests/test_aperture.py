@@ -16,6 +16,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from invglare._core.grids import ApertureGrid
 from invglare.aperture import (
     SHAPE_KINDS,
     Aperture,
@@ -34,7 +35,6 @@ from invglare.aperture import (
 )
 from invglare.aperture.coverage import sliver_integral
 from invglare.errors import ConfigError, InputDataError, PhysicsRangeError
-from invglare._core.grids import ApertureGrid
 
 # ---------------------------------------------------------------------------------------
 # ground truths

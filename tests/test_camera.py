@@ -10,6 +10,7 @@ import pytest
 from helpers import assert_grad_matches_fd, x64
 from scipy.ndimage import map_coordinates
 
+from invglare._core.grids import ApertureGrid
 from invglare.aperture.camera import (
     CameraAperture,
     CrossScreen,
@@ -20,7 +21,6 @@ from invglare.aperture.camera import (
 )
 from invglare.errors import ConfigError, PhysicsRangeError
 from invglare.optics.propagator import Propagator
-from invglare._core.grids import ApertureGrid
 
 LAMBDA_NM = 550.0
 

@@ -11,7 +11,7 @@ import pytest
 from typer.testing import CliRunner
 
 from invglare.cli import app
-from invglare.io.exr import read_exr
+from invglare.files.exr import read_exr
 
 EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
 runner = CliRunner()

@@ -17,6 +17,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from invglare._core.grids import ApertureGrid
 from invglare.aperture import Capsule, Disk
 from invglare.aperture.eye import (
     EYE_KEYS,
@@ -41,7 +42,6 @@ from invglare.aperture.stamps import (
 )
 from invglare.errors import ConfigError, PhysicsRangeError
 from invglare.optics.fraunhofer import fraunhofer_fft
-from invglare._core.grids import ApertureGrid
 
 KEY = jax.random.key(3)
 

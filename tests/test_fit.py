@@ -750,8 +750,8 @@ def test_jacobian_by_columns_equals_jacfwd_under_jit_and_vmap_1e12():
 def _daylight_eye_forward(npix: int = 64) -> Forward:
     from pathlib import Path
 
-    from invglare.io.config import load_toml
-    from invglare.io.model_config import build_model
+    from invglare.config.model import build_model
+    from invglare.files.toml import load_toml
 
     config = load_toml(Path(__file__).resolve().parents[1] / "examples" / "eye_daylight.toml")
     config["model"]["aperture_npix"] = npix

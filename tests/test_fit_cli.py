@@ -16,12 +16,12 @@ import pytest
 from typer.testing import CliRunner
 
 from invglare.cli import app
+from invglare.config.fit import load_fit
 from invglare.errors import ConfigError, InputDataError
+from invglare.files.exr import read_exr, write_exr
+from invglare.files.images import write_png
+from invglare.files.toml import load_toml
 from invglare.fit.params import START_MARGIN
-from invglare.io.config import load_toml
-from invglare.io.exr import read_exr, write_exr
-from invglare.io.fit_config import load_fit
-from invglare.io.images import write_png
 
 ROOT = Path(__file__).resolve().parents[1]
 FITS = ROOT / "fits"

@@ -1,4 +1,4 @@
-"""Tests of invglare.io: EXR and image round trips, header attributes, atomic writes, errors."""
+"""Tests of invglare.files: EXR and image round trips, header attributes, atomic writes, errors."""
 
 from __future__ import annotations
 
@@ -18,7 +18,7 @@ import pytest
 from PIL import Image
 
 from invglare.errors import ConfigError, InputDataError, PhysicsRangeError
-from invglare.io import (
+from invglare.files import (
     LoadedImage,
     atomic_path,
     atomic_write,
@@ -31,7 +31,7 @@ from invglare.io import (
     write_png,
     write_text_atomic,
 )
-from invglare.io import exr as exr_module
+from invglare.files import exr as exr_module
 
 RNG = np.random.default_rng(1234)
 

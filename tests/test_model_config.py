@@ -9,9 +9,9 @@ import pytest
 
 from invglare.aperture.camera import CameraAperture
 from invglare.aperture.eye import EyeAperture
+from invglare.config.model import build_model, model_to_config
 from invglare.errors import ConfigError
-from invglare.io.config import load_toml
-from invglare.io.model_config import build_model, model_to_config
+from invglare.files.toml import load_toml
 from invglare.models.aperture_psf import AperturePSF
 from invglare.models.kakimoto import KakimotoGlare
 
@@ -127,7 +127,7 @@ def test_psf_command_reports_the_veiling_glare_index(tmp_path):
     from typer.testing import CliRunner
 
     from invglare.cli import app
-    from invglare.io.exr import read_exr
+    from invglare.files.exr import read_exr
 
     out = tmp_path / "veil.exr"
     result = CliRunner().invoke(app, ["psf", "examples/veiling_ghosts.toml", "--out", str(out)])

@@ -9,6 +9,7 @@ import pytest
 from helpers import assert_grad_matches_fd, x64
 from scipy.special import fresnel
 
+from invglare._core.grids import AngularGrid, ApertureGrid, Sampling, check_wavelengths_nm
 from invglare.errors import PhysicsRangeError
 from invglare.optics.fourier import centred_fft2, crop_centred, materialise, mft2, pad_centred
 from invglare.optics.fraunhofer import (
@@ -18,7 +19,6 @@ from invglare.optics.fraunhofer import (
     transmitted_power,
 )
 from invglare.optics.fresnel import angular_spectrum, fresnel_fft, fresnel_mft, fresnel_phase
-from invglare._core.grids import AngularGrid, ApertureGrid, Sampling, check_wavelengths_nm
 
 
 def pixel_rect(n: int, wy: int, wx: int) -> np.ndarray:

@@ -11,10 +11,10 @@ import pytest
 from typer.testing import CliRunner
 
 from invglare.cli import app
+from invglare.config.model import build_model
 from invglare.errors import InputDataError, PhysicsRangeError
-from invglare.io.config import load_toml
-from invglare.io.exr import read_exr, write_exr
-from invglare.io.model_config import build_model
+from invglare.files.exr import read_exr, write_exr
+from invglare.files.toml import load_toml
 from invglare.render import (
     BrightPixels,
     bright_pixel_list,

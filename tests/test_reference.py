@@ -18,11 +18,11 @@ from helpers import assert_grad_matches_fd, x64
 from scipy.special import j0 as scipy_j0
 from scipy.special import j1 as scipy_j1
 
+from invglare._core.grids import AngularGrid, ApertureGrid
 from invglare.errors import ConfigError, InputDataError, PhysicsRangeError
-from invglare.io.exr import write_exr
+from invglare.files.exr import write_exr
 from invglare.optics.fraunhofer import fraunhofer_mft, transmitted_power
 from invglare.optics.fresnel import angular_spectrum
-from invglare._core.grids import AngularGrid, ApertureGrid
 from invglare.reference import (
     RadialTable,
     ReferenceImage,

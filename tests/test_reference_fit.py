@@ -12,9 +12,9 @@ import pytest
 from typer.testing import CliRunner
 
 from invglare.cli import app
+from invglare.config.reference_fit import load_reference_fit
 from invglare.errors import ConfigError, InputDataError, PhysicsRangeError
-from invglare.io.exr import write_exr
-from invglare.io.reference_fit_config import load_reference_fit
+from invglare.files.exr import write_exr
 from invglare.reference.cie_fit import build_fit_model, photopic_psf
 
 runner = CliRunner()

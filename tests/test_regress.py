@@ -17,9 +17,9 @@ import pytest
 from typer.testing import CliRunner
 
 from invglare.cli import app
+from invglare.config.model import model_to_config
 from invglare.errors import ConfigError, InputDataError, PhysicsRangeError
-from invglare.io.exr import read_exr, write_exr
-from invglare.io.model_config import model_to_config
+from invglare.files.exr import read_exr, write_exr
 from invglare.reference.cie_fit import (
     CieFitSetup,
     Population,

@@ -13,7 +13,7 @@ import pytest
 from helpers import assert_grad_matches_fd, x64
 
 from invglare.errors import ConfigError, InputDataError, PhysicsRangeError
-from invglare.io import encode_srgb, read_exr
+from invglare.files import encode_srgb, read_exr
 from invglare.optics.spectral import scale_psf
 from invglare.render import (
     DISPLAY_MAX,

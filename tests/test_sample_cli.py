@@ -23,7 +23,7 @@ def test_sample_command_fits_samples_resumes_and_reports(tmp_path):
     from typer.testing import CliRunner
 
     from invglare.cli import app
-    from invglare.io.exr import write_exr
+    from invglare.files.exr import write_exr
 
     # The plain AperturePSF (unit energy) of the model config, not CollectingPupil.
     inner = AperturePSF.build(

@@ -13,9 +13,9 @@ import pytest
 from typer.testing import CliRunner
 
 from invglare.cli import app
+from invglare.config.synth import load_synth, truth_path_for
 from invglare.errors import ConfigError
-from invglare.io.exr import read_exr
-from invglare.io.synth_config import load_synth, truth_path_for
+from invglare.files.exr import read_exr
 
 ROOT = Path(__file__).resolve().parents[1]
 DATA = ROOT / "data_synthetic"

@@ -485,7 +485,7 @@ def test_render_command_writes_mp4_and_exr_frames(tmp_path):
     from typer.testing import CliRunner
 
     from invglare.cli import app
-    from invglare.io.exr import read_exr
+    from invglare.files.exr import read_exr
 
     def invoke(*args):
         return CliRunner().invoke(app, [str(a) for a in args])

@@ -18,9 +18,7 @@ from helpers import central_difference, x64
 from scipy.integrate import quad
 from scipy.stats import ncx2
 
-from invglare.errors import ConfigError, InputDataError, PhysicsRangeError
-from invglare.models.veiling import GhostSet, LensGhosts, VeilingGlare, veiling_glare_index
-from invglare.models.veiling_config import (
+from invglare.config.veiling import (
     bundled_lenses,
     lens_from_table,
     lens_to_table,
@@ -29,6 +27,8 @@ from invglare.models.veiling_config import (
     veiling_from_config,
     veiling_to_config,
 )
+from invglare.errors import ConfigError, InputDataError, PhysicsRangeError
+from invglare.models.veiling import GhostSet, LensGhosts, VeilingGlare, veiling_glare_index
 from invglare.models.veiling_series import (
     PROFILES,
     SeriesCoefficients,
@@ -700,8 +700,8 @@ def test_bad_inputs_raise_documented_errors():
 
 def test_render_ghosts_adds_each_lights_veiling_image_and_keeps_the_light():
     """Ghosts of a bright pixel: its own veiling image, scaled; the light they take leaves it."""
-    from invglare.io.config import load_toml
-    from invglare.io.model_config import build_model
+    from invglare.config.model import build_model
+    from invglare.files.toml import load_toml
     from invglare.render import bright_pixel_list
     from invglare.render.ghost_frames import render_ghosts
 
@@ -730,7 +730,7 @@ def test_render_command_adds_ghosts_to_a_scene(tmp_path):
     from typer.testing import CliRunner
 
     from invglare.cli import app
-    from invglare.io.exr import read_exr, write_exr
+    from invglare.files.exr import read_exr, write_exr
 
     scene = np.full((40, 56), 0.01, np.float32)
     scene[12, 20] = 500.0

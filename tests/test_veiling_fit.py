@@ -14,10 +14,10 @@ from helpers import central_difference, x64
 from typer.testing import CliRunner
 
 from invglare.cli import app
+from invglare.config.model import build_model, model_to_config
 from invglare.errors import PhysicsRangeError
+from invglare.files.toml import load_toml
 from invglare.fit.ghost_report import ghost_section
-from invglare.io.config import load_toml
-from invglare.io.model_config import build_model, model_to_config
 from invglare.models.veiling import GhostSet, VeilingGlare
 
 runner = CliRunner()
@@ -148,7 +148,7 @@ def test_fit_command_recovers_each_ghost_of_a_synthetic_veiling_frame(tmp_path):
 
 
 def test_bundled_veiling_fit_config_loads_with_its_truth():
-    from invglare.io.fit_config import load_fit
+    from invglare.config.fit import load_fit
 
     root = Path(__file__).resolve().parents[1]
     with x64():

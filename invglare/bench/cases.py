@@ -270,8 +270,8 @@ def _veiling_cooke(n: int):
     import equinox as eqx
     import jax.numpy as jnp
 
-    from invglare.io.config import load_toml
-    from invglare.io.model_config import build_model
+    from invglare.config.model import build_model
+    from invglare.files.toml import load_toml
 
     example = Path(__file__).resolve().parents[2] / "examples" / "veiling_cooke.toml"
     if not example.is_file():  # an installed wheel carries no examples/

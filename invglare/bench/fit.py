@@ -124,7 +124,7 @@ FIT_CASES = tuple(FIT_PROBLEMS)
 
 
 def _config(problem: FitProblem, npix: int) -> dict[str, Any]:
-    from invglare.io.config import load_toml
+    from invglare.files.toml import load_toml
 
     path = Path(problem.config_path)
     if not path.is_file():
@@ -145,8 +145,8 @@ def _config(problem: FitProblem, npix: int) -> dict[str, Any]:
 
 def _problem(problem: FitProblem, config: dict[str, Any]):
     """Space, template and target in the current default dtype (photo from a fixed key)."""
+    from invglare.config.model import build_model
     from invglare.fit import Forward, Observation, Parameter, ParameterSpace
-    from invglare.io.model_config import build_model
 
     model = build_model(config)
     free = [Parameter(p.path, p.lower, p.upper, init=p.start) for p in problem.free]

@@ -151,7 +151,7 @@ def run_bench(
     **Raises:** `ConfigError` for bad sizes or patterns; `RuntimeError` naming the cases
     that failed (after writing the reports of the others).
     """
-    from invglare.io.atomic import write_json_atomic, write_text_atomic
+    from invglare.files.atomic import write_json_atomic, write_text_atomic
 
     if not sizes or any(n < 16 or n % 2 for n in sizes):
         raise ConfigError(f"bench sizes must be even and >= 16, got {sizes}")

@@ -87,9 +87,9 @@ def run_sample_benchmark(
     import jax
     import jax.numpy as jnp
 
+    from invglare.config.fit import load_fit
     from invglare.fit import FitResult
     from invglare.fit.sample import BatchedLogProb, initial_walkers, make_log_posterior
-    from invglare.io.fit_config import load_fit
 
     if int(n_steps) != n_steps or n_steps < 1:
         raise ConfigError(f"sample benchmark n_steps must be an integer >= 1, got {n_steps!r}")

@@ -1,6 +1,6 @@
 """``invglare fit``: fit a model to a photo and write ``reports/NAME/``.
 
-The config is read and checked by :func:`invglare.io.fit_config.load_fit` (so
+The config is read and checked by :func:`invglare.config.fit.load_fit` (so
 mistakes surface before any compilation), the fit runs in float64 with a
 progress bar per discrete choice, and the report is written by
 :func:`invglare.fit.report.write_report`, atomically as a whole: an interrupted
@@ -63,7 +63,7 @@ class _Progress:
 
 
 def fit_setup(setup, forward=None, progress=None, *, final=True, resume=None):
-    """Fit a :class:`~invglare.io.fit_config.FitSetup`: its stages in order, then the final fit.
+    """Fit a :class:`~invglare.config.fit.FitSetup`: its stages in order, then the final fit.
 
     The first stage starts from `setup.starts`; each later one from the best result of
     the one before. **Returns:** the last stage's :class:`~invglare.fit.FitResult`,
@@ -328,10 +328,10 @@ def run_fit(
     """Run the fit a config describes and write its report. **Returns:** the report folder."""
     import jax
 
+    from invglare.config.fit import load_fit
+    from invglare.config.reference_fit import is_reference_fit
+    from invglare.files.toml import load_toml
     from invglare.fit.report import ReportInfo, write_report
-    from invglare.io.config import load_toml
-    from invglare.io.fit_config import load_fit
-    from invglare.io.reference_fit_config import is_reference_fit
 
     if is_reference_fit(load_toml(config)):
         return run_reference_fit(config, out_dir, n_starts, max_steps, progress)
@@ -423,7 +423,7 @@ def run_reference_fit(
     progress: bool = True,
 ) -> Path:
     """Fit the eye's radial GSF to a reference (``[reference]``); write its report folder."""
-    from invglare.io.reference_fit_config import load_reference_fit
+    from invglare.config.reference_fit import load_reference_fit
     from invglare.reference.cie_fit import write_gsf_report
 
     t0 = time.perf_counter()

@@ -61,7 +61,7 @@ def _first_sentence(path: Path) -> str:
 
 
 def _entry(path: Path, name: str | None = None, note: str | None = None) -> GalleryEntry:
-    from invglare.io.config import load_toml
+    from invglare.files.toml import load_toml
 
     config = load_toml(path)
     kind = config.get("model", {}).get("kind")
@@ -146,7 +146,7 @@ def _fit_aperture_npix(entry: GalleryEntry, npix: int, wavelengths_nm) -> Galler
     A config sampled for 550 nm may alias at 400 nm (its PSF field reaches past
     ``lambda / (2 pitch)``); a finer raster of the same window keeps it alias-free.
     """
-    from invglare.io.model_config import build_model
+    from invglare.config.model import build_model
     from invglare.optics.spectral import parse_wavelengths
 
     if wavelengths_nm is None:
@@ -186,7 +186,7 @@ def _row(
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from invglare.io.model_config import build_model
+    from invglare.config.model import build_model
     from invglare.render import convolve_psf, luminance, tonemap
 
     model = build_model(
@@ -324,8 +324,8 @@ def run_gallery(
     """
     from tqdm import tqdm
 
+    from invglare.files.atomic import atomic_write
     from invglare.fit.report import atomic_directory
-    from invglare.io.atomic import atomic_write
     from invglare.render.scenes import SCENES
 
     if scene not in SCENES:

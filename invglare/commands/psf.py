@@ -28,9 +28,9 @@ def run_psf(
 ) -> None:
     import jax
 
-    from invglare.io.config import load_toml
-    from invglare.io.exr import write_exr
-    from invglare.io.model_config import build_model, model_to_config
+    from invglare.config.model import build_model, model_to_config
+    from invglare.files.exr import write_exr
+    from invglare.files.toml import load_toml
     from invglare.models.veiling import VeilingGlare
     from invglare.optics.spectral import parse_wavelengths
 
@@ -75,7 +75,7 @@ def run_psf(
         energy,
     )
     if png is not None:
-        from invglare.io.images import write_png
+        from invglare.files.images import write_png
 
         write_png(png, log_preview(psf))
         log.info("wrote %s (log-scaled preview, 6 decades)", png)
@@ -83,8 +83,8 @@ def run_psf(
 
 def _write_veiling(model, psf: np.ndarray, out: Path, half: bool, png: Path | None) -> None:
     """A veiling-glare image has no propagator: its header carries the glare index instead."""
-    from invglare.io.exr import write_exr
-    from invglare.io.model_config import model_to_config
+    from invglare.config.model import model_to_config
+    from invglare.files.exr import write_exr
 
     vgi = float(model.veiling_glare_index(spot_radius_deg=VGI_SPOT_RADIUS_DEG))
     write_exr(
@@ -111,7 +111,7 @@ def _write_veiling(model, psf: np.ndarray, out: Path, half: bool, png: Path | No
         VGI_SPOT_RADIUS_DEG,
     )
     if png is not None:
-        from invglare.io.images import write_png
+        from invglare.files.images import write_png
 
         write_png(png, log_preview(psf))
         log.info("wrote %s (log-scaled preview, 6 decades)", png)

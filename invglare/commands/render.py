@@ -63,7 +63,7 @@ def run_render(
 ) -> None:
     import jax.numpy as jnp
 
-    from invglare.io.exr import read_exr
+    from invglare.files.exr import read_exr
     from invglare.render import convolve_psf, replace_with_billboards, validate_scene
 
     if frames is not None or fps is not None:
@@ -171,9 +171,9 @@ def _tonemap_params(
 
 def _write(out: Path, result, scale: float, model, mode: str, scene: Path, tonemap_name, params):
     """A linear EXR (model config in the header) or a tone-mapped PNG."""
-    from invglare.io.exr import write_exr
-    from invglare.io.images import write_png
-    from invglare.io.model_config import model_to_config
+    from invglare.config.model import model_to_config
+    from invglare.files.exr import write_exr
+    from invglare.files.images import write_png
     from invglare.render import tonemap
 
     if out.suffix.lower() == ".exr":
@@ -192,8 +192,8 @@ def _write(out: Path, result, scale: float, model, mode: str, scene: Path, tonem
 def _load_model(model_path: Path, grid_of=None):
     """The model of a config file; `grid_of(kind)` gives ``npix`` / ``pixel_scale_deg``
     overrides for a model kind (the file is read once)."""
-    from invglare.io.config import load_toml
-    from invglare.io.model_config import build_model
+    from invglare.config.model import build_model
+    from invglare.files.toml import load_toml
 
     config = load_toml(model_path)
     table = config.get("model")
@@ -280,8 +280,8 @@ def run_animation(
     import jax.numpy as jnp
     from tqdm import tqdm
 
-    from invglare.io.atomic import atomic_path
-    from invglare.io.exr import read_exr, write_exr
+    from invglare.files.atomic import atomic_path
+    from invglare.files.exr import read_exr, write_exr
     from invglare.models.temporal import (
         TemporalGlare,
         frame_luminance_cd_m2,

@@ -1,6 +1,6 @@
 """``invglare sample``: the emcee posterior of a fit, checkpointed, with its report.
 
-Reads the fit config through :func:`invglare.io.fit_config.load_fit`, starts from
+Reads the fit config through :func:`invglare.config.fit.load_fit`, starts from
 the stored fit result ``reports/NAME/params.json`` (running the fit first when
 there is none), samples with :func:`invglare.fit.sample.sample` into
 ``reports/NAME/posterior/chain.h5`` and writes the report of
@@ -60,9 +60,10 @@ SAMPLE_DEFAULTS: dict[str, Any] = {
 
 def read_sample_section(config_path: Path) -> dict[str, Any]:
     """The ``[sample]`` table of a fit config, checked, with defaults filled in."""
+    from invglare.config.reference_fit import is_reference_fit
+    from invglare.config.section import Section
+    from invglare.files.toml import load_toml
     from invglare.fit.sample import LIKELIHOODS, parse_moves
-    from invglare.io.config import Section, load_toml
-    from invglare.io.reference_fit_config import is_reference_fit
 
     config = load_toml(config_path)
     if is_reference_fit(config):
@@ -129,10 +130,10 @@ def run_sample(
     """
     import jax
 
+    from invglare.config.fit import load_fit
     from invglare.fit import FitResult
     from invglare.fit.posterior_report import write_posterior_report
     from invglare.fit.sample import sample
-    from invglare.io.fit_config import load_fit
 
     opts = read_sample_section(Path(config))
     if steps is not None:

@@ -1,6 +1,6 @@
 """``invglare synth``: synthetic target photos with their ground truth.
 
-For each spec (:mod:`invglare.io.synth_config`) the model's PSF is computed in
+For each spec (:mod:`invglare.config.synth`) the model's PSF is computed in
 float64, turned into mean counts by the observation (flux, background, offset,
 rotation, response), and a noisy photo is drawn from it (Poisson electrons,
 Gaussian read noise, hard clip at the saturation level) with the spec's seed.
@@ -10,7 +10,7 @@ Two files are written atomically next to the spec:
   ``wavelengthsNm``, the full model config (``invglareConfig``) and the
   observation and noise seed (``invglareObservation``, ``invglareNoiseSeed``);
 - ``NAME.truth.json``: the same model config, observation and seed, plus a few
-  statistics of the photo. :func:`invglare.io.fit_config.load_fit` reads it to
+  statistics of the photo. :func:`invglare.config.fit.load_fit` reads it to
   report the error of each fitted parameter.
 
 The same spec and seed give byte-identical files.
@@ -32,8 +32,8 @@ from typing import Any
 
 import numpy as np
 
+from invglare.config.synth import OBSERVATION_KEYS, SynthSpec, load_synth
 from invglare.errors import ConfigError, InvglareError
-from invglare.io.synth_config import OBSERVATION_KEYS, SynthSpec, load_synth
 
 log = logging.getLogger("invglare")
 
@@ -57,8 +57,8 @@ def build_truth_forward(spec: SynthSpec):
     """The spec's ``Forward(model, observation)`` (call inside ``jax.enable_x64(True)``)."""
     import jax.numpy as jnp
 
+    from invglare.config.model import build_model
     from invglare.fit import Forward, Observation, Parameter, ParameterSpace
-    from invglare.io.model_config import build_model
 
     model = build_model(spec.model_config, spec.base_dir, source=str(spec.model_path or spec.path))
     try:
@@ -81,7 +81,7 @@ def synthesize(spec: SynthSpec) -> tuple[np.ndarray, dict[str, Any]]:
     import equinox as eqx
     import jax
 
-    from invglare.io.model_config import (
+    from invglare.config.model import (
         model_pixel_scale_deg,
         model_to_config,
         model_wavelengths_nm,
@@ -158,8 +158,8 @@ def synthesize(spec: SynthSpec) -> tuple[np.ndarray, dict[str, Any]]:
 
 def write_synth(spec: SynthSpec, photo: np.ndarray, truth: dict[str, Any]) -> tuple[Path, Path]:
     """Write ``NAME.exr`` and ``NAME.truth.json`` atomically. **Returns:** both paths."""
-    from invglare.io.atomic import write_json_atomic
-    from invglare.io.exr import write_exr
+    from invglare.files.atomic import write_json_atomic
+    from invglare.files.exr import write_exr
 
     attrs = {
         "invglareObservation": json.dumps(truth["observation"], sort_keys=True),

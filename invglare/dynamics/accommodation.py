@@ -67,7 +67,9 @@ class Accommodation(eqx.Module):
 
     def __check_init__(self):
         check_range("accommodation low_d_per_mm", self.low_d_per_mm, 0.0, unit="D/mm")
-        check_range("accommodation low_rate_hz", self.low_rate_hz, 0.0, 0.3, lo_open=True, unit="Hz")
+        check_range(
+            "accommodation low_rate_hz", self.low_rate_hz, 0.0, 0.3, lo_open=True, unit="Hz"
+        )
         check_range("accommodation high_rms_d", self.high_rms_d, 0.0, unit="D")
         lo, hi = self.high_band_hz
         if not (0.0 < lo < hi and math.isfinite(hi)):

@@ -41,11 +41,11 @@ import numpy as np
 from jaxtyping import ArrayLike, Float
 
 from invglare.errors import ConfigError
+from invglare.files.atomic import atomic_path, write_json_atomic, write_text_atomic
 from invglare.fit.observation import Forward
 from invglare.fit.params import ParameterSpace
 from invglare.fit.sample import SampleResult
 from invglare.fit.views import radial_bin_radii, radial_profile
-from invglare.io.atomic import atomic_path, write_json_atomic, write_text_atomic
 
 __all__ = ["posterior_predictive_profiles", "summary_dict", "write_posterior_report"]
 

@@ -43,8 +43,8 @@ from typing import Any
 import numpy as np
 from jaxtyping import Float
 
+from invglare.files.atomic import dumps_json
 from invglare.fit.result import FitResult, _clean
-from invglare.io.atomic import dumps_json
 
 _UNITS = (
     ("_mm", "mm"),

@@ -34,7 +34,7 @@ from typing import Any
 import numpy as np
 
 from invglare.errors import InputDataError
-from invglare.io.atomic import write_json_atomic
+from invglare.files.atomic import write_json_atomic
 
 FORMAT = "invglare.fit"
 VERSION = 1

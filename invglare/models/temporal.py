@@ -576,7 +576,7 @@ def _part_classes() -> dict[str, type]:
 
 def _read_part(cls: type, table: Any, where: str):
     """Build a dynamics part from a table whose keys are the part's fields."""
-    from invglare.io.config import Section
+    from invglare.config.section import Section
 
     sec = Section(table, where)
     args: dict[str, Any] = {}
@@ -677,7 +677,7 @@ def temporal_from_config(
     `PhysicsRangeError` for values out of range.
     """
     from invglare.aperture.eye import eye_from_config
-    from invglare.io.config import Section, check_sections
+    from invglare.config.section import Section, check_sections
 
     del base_dir  # no file references in a temporal model
     check_sections(config, ("model", "output", "spectrum"), "config")

@@ -205,7 +205,7 @@ class CieFitSetup:
 
 
 def eye_config(setup: CieFitSetup) -> dict[str, Any]:
-    """The model config (as for :func:`~invglare.io.model_config.build_model`) of the fit's eye.
+    """The model config (as for :func:`~invglare.config.model.build_model`) of the fit's eye.
 
     Counts and radii are at their *upper* bounds: the particles' stamp windows are
     sized when the model is built, and must hold the largest particle the fit may reach.
@@ -264,7 +264,7 @@ def build_fit_model(setup: CieFitSetup):
     """
     import equinox as eqx
 
-    from invglare.io.model_config import build_model
+    from invglare.config.model import build_model
 
     setup.validate()
     model = build_model(eye_config(setup), source="CIE fit eye")
@@ -706,7 +706,7 @@ def _figure(results: Sequence[CieFitResult], path: Path, title: str) -> None:
     import jax
     import matplotlib.pyplot as plt
 
-    from invglare.io.atomic import atomic_path
+    from invglare.files.atomic import atomic_path
     from invglare.reference.cie import cie_gsf
 
     fig, (ax, axr) = plt.subplots(
@@ -750,7 +750,7 @@ def write_cie_report(
 
     **Returns:** the markdown path. Files are written atomically.
     """
-    from invglare.io.atomic import write_json_atomic, write_text_atomic
+    from invglare.files.atomic import write_json_atomic, write_text_atomic
 
     if not results or any(r.age is None for r in results):
         raise ConfigError("write_cie_report needs CIE fits (from fit_cie)")
@@ -834,8 +834,8 @@ def write_gsf_report(
     previous report). `reference` says in words what was fitted (the CIE's age and
     pigmentation, or the file). **Returns:** the folder.
     """
+    from invglare.files.atomic import dumps_json
     from invglare.fit.report import atomic_directory
-    from invglare.io.atomic import dumps_json
 
     setup = result.setup
     beyond = (

@@ -546,7 +546,7 @@ def _parse_table_text(path: Path, text: str) -> tuple[np.ndarray, np.ndarray]:
 def load_reference_psf(path: str | os.PathLike[str]) -> ReferenceImage | RadialTable:
     """Read a reference PSF: a 2-D EXR image or a 1-D table of ``(theta_deg, value)``.
 
-    - ``.exr``: read with `invglare.io.exr.read_exr`; the file must carry its
+    - ``.exr``: read with `invglare.files.exr.read_exr`; the file must carry its
       pixel scale (`pixelScaleDeg`, degrees per pixel). Returns a
       :class:`ReferenceImage`.
     - ``.csv``, ``.txt``, ``.tsv``, ``.dat``: two numeric columns, angle in
@@ -569,14 +569,14 @@ def load_reference_psf(path: str | os.PathLike[str]) -> ReferenceImage | RadialT
     src = Path(path)
     suffix = src.suffix.lower()
     if suffix == ".exr":
-        from invglare.io.exr import read_exr
+        from invglare.files.exr import read_exr
 
         image = read_exr(src)
         if image.pixel_scale_deg is None:
             raise InputDataError(
                 f"{src}: the EXR header has no pixelScaleDeg attribute; a 2-D reference PSF "
                 "needs its pixel scale in degrees per pixel (write it with "
-                "invglare.io.write_exr(..., pixel_scale_deg=...))"
+                "invglare.files.write_exr(..., pixel_scale_deg=...))"
             )
         return ReferenceImage(
             psf=image.data,

@@ -1,7 +1,7 @@
 """Golden regression: every model and mode, recomputed and compared with stored reference PSFs.
 
 A *case* is a small reference configuration of a forward model (a model config as in
-:mod:`invglare.io.model_config`, plus a light direction for position-dependent
+:mod:`invglare.config.model`, plus a light direction for position-dependent
 masking). Its PSF was computed once, in float32 on the CPU, and stored as an EXR file
 ``<golden_dir>/<case>.exr`` whose header holds the full model config
 (``invglareConfig``), the pixel scale, the wavelengths and the case's name and light
@@ -155,7 +155,7 @@ class Case:
     - `name`: file stem of the golden EXR and the name on the command line.
     - `description`: one line saying what it exercises.
     - `config`: the model config (the TOML tables as a dict), for
-      :func:`invglare.io.model_config.build_model`.
+      :func:`invglare.config.model.build_model`.
     - `light_angle_deg`: ``(x, y)`` light direction for a Kakimoto model (what
       position-dependent masking depends on); ``None`` for an ``AperturePSF``.
     - `tolerance`: the case's :class:`Tolerance`.
@@ -449,12 +449,12 @@ def compute_case(case: Case, *, x64: bool = False) -> tuple[np.ndarray, Any]:
     **Returns:** ``(psf, model)``: the PSF as a numpy array, ``(npix, npix)`` or
     ``(npix, npix, 3)``, and the built model.
 
-    **Raises:** whatever :func:`~invglare.io.model_config.build_model` raises for a bad
+    **Raises:** whatever :func:`~invglare.config.model.build_model` raises for a bad
     config; `NumericalError` for a non-finite PSF.
     """
     import jax
 
-    from invglare.io.model_config import build_model
+    from invglare.config.model import build_model
 
     with jax.enable_x64(x64):
         model = build_model(case.config, source=f"regression case {case.name!r}")
@@ -468,7 +468,7 @@ def compute_case(case: Case, *, x64: bool = False) -> tuple[np.ndarray, Any]:
 
 
 def _header_for(case: Case, model: Any) -> tuple[dict[str, Any], dict[str, Any], list[float]]:
-    from invglare.io.model_config import model_to_config
+    from invglare.config.model import model_to_config
 
     config = model_to_config(model)
     attrs: dict[str, Any] = {
@@ -485,7 +485,7 @@ def _header_for(case: Case, model: Any) -> tuple[dict[str, Any], dict[str, Any],
 
 def write_golden(path: str | os.PathLike[str], case: Case, psf: np.ndarray, model: Any) -> Path:
     """Store `psf` as the golden of `case` (float32 EXR, config and case in the header)."""
-    from invglare.io.exr import write_exr
+    from invglare.files.exr import write_exr
 
     config, attrs, lams = _header_for(case, model)
     return write_exr(
@@ -681,8 +681,8 @@ def _config_changes(stored: Any, current: Any, prefix: str = "") -> list[str]:
 
 
 def _run_case(case: Case, golden_dir: Path) -> CaseResult:
-    from invglare.io.atomic import dumps_json
-    from invglare.io.exr import read_exr
+    from invglare.files.atomic import dumps_json
+    from invglare.files.exr import read_exr
 
     t0 = time.perf_counter()
     psf, model = compute_case(case)
@@ -801,7 +801,7 @@ def update_goldens(
     **Raises:** `ConfigError` for an empty reason. Each file is written atomically;
     the log is written after the PSFs.
     """
-    from invglare.io.atomic import write_text_atomic
+    from invglare.files.atomic import write_text_atomic
 
     text = (reason or "").strip()
     if not text:
@@ -861,7 +861,7 @@ def _figure(result: CaseResult, path: Path) -> None:
     """
     from matplotlib import colormaps
 
-    from invglare.io.images import write_png
+    from invglare.files.images import write_png
 
     new = _display(np.asarray(result.psf, dtype=np.float64))
     ref = None if result.reference is None else _display(np.asarray(result.reference, np.float64))
@@ -907,7 +907,7 @@ def write_report(
 
     **Returns:** the markdown path. Every file is written atomically.
     """
-    from invglare.io.atomic import write_text_atomic
+    from invglare.files.atomic import write_text_atomic
 
     out = Path(out_dir)
     fig_dir = out / "regression"

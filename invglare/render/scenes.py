@@ -273,7 +273,7 @@ def write_scene(name: str, path: str | os.PathLike[str], npix: int = 256, seed: 
     fn = SCENES.get(name) if isinstance(name, str) else None
     if fn is None:
         raise ConfigError(f"unknown scene {name!r}; valid names: {', '.join(SCENES)}")
-    from invglare.io.exr import write_exr  # imported here: scenes are usable without OpenEXR
+    from invglare.files.exr import write_exr  # imported here: scenes are usable without OpenEXR
 
     image, scale = fn(npix, seed)
     return write_exr(

@@ -11,7 +11,7 @@ Operators:
 
 Every entry of `TONEMAPS` takes a linear image `(H, W)` or `(H, W, C)` and
 keyword parameters, and returns display values in [0, 1] of the same shape,
-ready for `invglare.io.write_png`; `tonemap(image, name, **params)` dispatches on
+ready for `invglare.files.write_png`; `tonemap(image, name, **params)` dispatches on
 the name. The building blocks (`kakimoto_sigmoid` in the paper's 0-255 display
 units, `reinhard_global` in linear display luminance, `srgb_encode`) are public
 too. Everything is `jnp`, differentiable in the image and in every parameter, and
@@ -379,7 +379,7 @@ def reinhard_display(
 def srgb_encode(linear: Float[ArrayLike, "*shape"]) -> Float[Array, "*shape"]:
     """The sRGB transfer function (IEC 61966-2-1) in `jnp`, not clipped.
 
-    Same curve as the numpy `invglare.io.encode_srgb` (which stays numpy so that
+    Same curve as the numpy `invglare.files.encode_srgb` (which stays numpy so that
     file I/O does not import JAX); this one is traceable and differentiable.
 
     ```python

@@ -50,7 +50,7 @@ or a cross-screen filter) masked by a pupil (the eye's, or a diaphragm). They ta
     f_number = 8.0
     focal_length_mm = 50.0
 
-The kind ``"veiling"`` (lens ghosts as Fourier series, :mod:`invglare.models.veiling_config`)
+The kind ``"veiling"`` (lens ghosts as Fourier series, :mod:`invglare.config.veiling`)
 has its own schema; see ``examples/veiling_cooke.toml``. The kind ``"temporal"`` (the dynamic
 eye of Ritschel et al., :func:`invglare.models.temporal.temporal_from_config`) likewise; see
 ``examples/temporal_eye.toml``.
@@ -69,13 +69,13 @@ import numpy as np
 from invglare.aperture import Aperture, shape_from_config, shape_to_config
 from invglare.aperture.camera import CameraAperture, camera_to_config
 from invglare.aperture.eye import EyeAperture, eye_from_config, eye_to_config
+from invglare.config.section import Section, check_sections
+from invglare.config.veiling import veiling_from_config, veiling_to_config
 from invglare.errors import ConfigError
-from invglare.io.config import Section, check_sections
 from invglare.models.aperture_psf import AperturePSF
 from invglare.models.kakimoto import COLOURS, MASKINGS, KakimotoGlare, kakimoto_to_config
 from invglare.models.temporal import TemporalGlare, temporal_from_config, temporal_to_config
 from invglare.models.veiling import VeilingGlare
-from invglare.models.veiling_config import veiling_from_config, veiling_to_config
 from invglare.optics.propagator import METHODS, PROPAGATIONS
 from invglare.optics.spectral import SPECTRAL_METHODS, parse_wavelengths
 

@@ -72,7 +72,7 @@ batch = "vmap"                   # vmap (all starts at once) or loop
 ```python
 import jax
 from invglare.fit import fit
-from invglare.io.fit_config import load_fit
+from invglare.config.fit import load_fit
 
 with jax.enable_x64(True):               # fits are meant to run in float64
     setup = load_fit("fits/eye_daylight.toml")
@@ -96,9 +96,10 @@ from typing import Any
 
 import numpy as np
 
+from invglare.config.section import Section, check_sections
+from invglare.config.synth import read_observation, truth_path_for
 from invglare.errors import ConfigError, InputDataError
-from invglare.io.config import Section, check_sections, load_toml
-from invglare.io.synth_config import read_observation, truth_path_for
+from invglare.files.toml import load_toml
 
 #: [sample] belongs to ``invglare sample`` (read by invglare.commands.sample); a fit ignores it.
 SECTIONS = ("fit", "target", "model", "observation", "free", "discrete", "views", "view_options",
@@ -217,7 +218,7 @@ class FitSetup:
         """The model of the ground truth file (as the photo was made), or None without one."""
         if self.truth_path is None:
             return None
-        from invglare.io.model_config import build_model
+        from invglare.config.model import build_model
 
         data = json.loads(self.truth_path.read_text(encoding="utf-8"))
         return build_model(data["model"], self.truth_path.parent, source=str(self.truth_path))
@@ -293,7 +294,7 @@ def _set_key(config: dict[str, Any], key: str, value: Any) -> None:
 def _build(
     config, model_path: Path, shape: tuple[int, ...], scale: float, wavelength_nm: float | None
 ):
-    from invglare.io.model_config import build_model
+    from invglare.config.model import build_model
 
     # A veiling model draws any screen; the PSF models' output grids are square (a
     # non-square photo is refused where the photo is read).
@@ -330,8 +331,8 @@ def load_target(
     models' grids are square, the veiling model's screen is not), NaN/inf pixels, an
     image that is all zeros or constant, and one whose every pixel is at `saturation`.
     """
+    from invglare.files.images import read_image
     from invglare.fit.observation import check_target
-    from invglare.io.images import read_image
 
     if not path.exists():
         raise InputDataError(f"target photo {path} does not exist")
@@ -525,9 +526,9 @@ def _read_truth(
     path: Path, space, forward, discrete: list[DiscreteOption], scale_deg: float
 ) -> tuple[dict[str, float], list[DiscreteOption]]:
     """Truth of each free path, resolved on the forward rebuilt from a ``*.truth.json``."""
+    from invglare.config.model import build_model, model_pixel_scale_deg
     from invglare.fit import Forward, Observation
     from invglare.fit.params import _getter, resolve_path
-    from invglare.io.model_config import build_model, model_pixel_scale_deg
 
     try:
         data = json.loads(path.read_text(encoding="utf-8"))

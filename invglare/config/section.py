@@ -1,26 +1,14 @@
-"""Strict TOML configs: unknown keys and wrong types are errors that name the key."""
+"""The one strict reader of config tables: unknown keys and wrong types name the key."""
 
 from __future__ import annotations
 
-import tomllib
-from pathlib import Path
 from typing import Any
+
+import numpy as np
 
 from invglare.errors import ConfigError
 
 _TYPE_NAMES = {int: "an integer", float: "a number", str: "a string", bool: "true or false"}
-
-
-def load_toml(path: str | Path) -> dict[str, Any]:
-    """Parse a TOML file, turning missing files and syntax errors into :class:`ConfigError`."""
-    path = Path(path)
-    if not path.is_file():
-        raise ConfigError(f"config file {str(path)!r} does not exist")
-    try:
-        with path.open("rb") as fh:
-            return tomllib.load(fh)
-    except tomllib.TOMLDecodeError as err:
-        raise ConfigError(f"{path}: not valid TOML ({err})") from err
 
 
 class Section:
@@ -59,6 +47,19 @@ class Section:
         if float in kinds and isinstance(value, int) and int not in kinds:
             value = float(value)
         return value
+
+    def numbers(self, key: str, default: Any = ..., shape: str = "") -> Any:
+        """A number or a (nested) list of numbers, as a float array (`shape` names the form)."""
+        value = self.get(key, (float, list), default)
+        if value is default and default is not ...:
+            return value
+        try:
+            return np.asarray(value, dtype=float)
+        except (TypeError, ValueError) as err:
+            raise ConfigError(
+                f"{self.where}.{key} must be {shape or 'a number or a list of numbers'}, "
+                f"got {value!r}"
+            ) from err
 
     def choice(self, key: str, valid: tuple[str, ...], default: str) -> str:
         value = self.get(key, str, default)

@@ -33,7 +33,7 @@ import numpy as np
 import OpenEXR
 
 from invglare.errors import ConfigError, InputDataError, PhysicsRangeError
-from invglare.io.atomic import atomic_write, dumps_json
+from invglare.files.atomic import atomic_write, dumps_json
 
 __all__ = [
     "CHANNELS_ATTR",

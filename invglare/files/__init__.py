@@ -1,17 +1,20 @@
-"""File input and output at the edge of invglare: EXR, photos, PNG, atomic writes.
+"""Files, the bottom of invglare's I/O: EXR, photos, PNG, TOML, atomic writes.
+
+Every tier may import from here; nothing here imports from another tier (only
+:mod:`invglare.errors` and :mod:`invglare._core`).
 
 Everything here works on numpy arrays (JAX arrays are accepted on writing) and
 raises `invglare.errors.InputDataError` for a missing, unreadable or bad file.
 """
 
-from invglare.io.atomic import (
+from invglare.files.atomic import (
     atomic_path,
     atomic_write,
     dumps_json,
     write_json_atomic,
     write_text_atomic,
 )
-from invglare.io.exr import (
+from invglare.files.exr import (
     CHANNELS_ATTR,
     CONFIG_ATTR,
     PIXEL_SCALE_ATTR,
@@ -21,7 +24,7 @@ from invglare.io.exr import (
     read_exr,
     write_exr,
 )
-from invglare.io.images import (
+from invglare.files.images import (
     SUPPORTED_IMAGE_EXTENSIONS,
     LoadedImage,
     decode_srgb,
@@ -29,6 +32,7 @@ from invglare.io.images import (
     read_image,
     write_png,
 )
+from invglare.files.toml import load_toml
 
 __all__ = [
     "CHANNELS_ATTR",
@@ -44,6 +48,7 @@ __all__ = [
     "decode_srgb",
     "dumps_json",
     "encode_srgb",
+    "load_toml",
     "read_exr",
     "read_image",
     "write_exr",

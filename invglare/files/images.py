@@ -30,8 +30,8 @@ from typing import Any
 import numpy as np
 
 from invglare.errors import InputDataError
-from invglare.io.atomic import atomic_write
-from invglare.io.exr import read_exr, validate_pixels
+from invglare.files.atomic import atomic_write
+from invglare.files.exr import read_exr, validate_pixels
 
 __all__ = [
     "SUPPORTED_IMAGE_EXTENSIONS",

@@ -26,7 +26,7 @@ A spec is a TOML file read by ``invglare synth``::
 
 Instead of ``synth.model`` a spec may hold the model itself: ``[model]``,
 ``[output]`` and ``[spectrum]`` tables as in a model config
-(:mod:`invglare.io.model_config`). The model must be monochrome (one
+(:mod:`invglare.config.model`). The model must be monochrome (one
 wavelength): a photo here is one channel of counts.
 
 **Example:**
@@ -45,8 +45,9 @@ import re
 from pathlib import Path
 from typing import Any
 
+from invglare.config.section import Section, check_sections
 from invglare.errors import ConfigError
-from invglare.io.config import Section, check_sections, load_toml
+from invglare.files.toml import load_toml
 
 #: Top-level tables of a synth spec.
 SECTIONS = ("synth", "set", "observation", "model", "output", "spectrum")

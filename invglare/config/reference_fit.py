@@ -2,7 +2,7 @@
 
 ``invglare fit`` reads a config with a ``[reference]`` table through
 :func:`load_reference_fit` (a config with ``[target]`` is a photo fit, see
-:mod:`invglare.io.fit_config`). The eye model's radially averaged GSF is fitted to the
+:mod:`invglare.config.fit`). The eye model's radially averaged GSF is fitted to the
 reference over a range of angles, in log units (:mod:`invglare.reference.cie_fit` says
 why and with which eye). Relative paths are relative to the config file.
 
@@ -63,9 +63,10 @@ from typing import Any
 import numpy as np
 
 from invglare.aperture.eye import REGIONS
+from invglare.config.fit import read_fit_section
+from invglare.config.section import Section, check_sections
 from invglare.errors import ConfigError, InputDataError, PhysicsRangeError
-from invglare.io.config import Section, check_sections, load_toml
-from invglare.io.fit_config import read_fit_section
+from invglare.files.toml import load_toml
 from invglare.reference.cie_fit import (
     CieFitResult,
     CieFitSetup,

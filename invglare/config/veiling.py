@@ -65,14 +65,15 @@ step unless a per-surface ``reflectance`` says otherwise.
 
 from __future__ import annotations
 
-import tomllib
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from invglare.config.section import Section
 from invglare.errors import ConfigError, PhysicsRangeError
+from invglare.files.toml import load_toml
 from invglare.models.veiling import POSITIVITY, VeilingGlare
 from invglare.models.veiling_ghosts import GhostSet, LensGhosts
 from invglare.models.veiling_series import PROFILES, WINDOWS
@@ -92,64 +93,6 @@ __all__ = [
 
 #: Where the bundled lens prescriptions live.
 BUNDLED_LENS_DIR = Path(__file__).resolve().parent.parent / "data" / "lenses"
-
-_NAMES = {int: "an integer", float: "a number", str: "a string", bool: "true or false"}
-
-
-class _Table:
-    """A TOML table read key by key; :meth:`finish` rejects keys nobody asked for."""
-
-    def __init__(self, table: Any, where: str):
-        if not isinstance(table, dict):
-            raise ConfigError(f"[{where}] must be a table, got {table!r}")
-        self.table, self.where, self.known = table, where, []
-
-    def get(self, key: str, kinds: tuple[type, ...], default: Any = ...) -> Any:
-        self.known.append(key)
-        if key not in self.table:
-            if default is ...:
-                raise ConfigError(f"[{self.where}] needs the key {key!r}")
-            return default
-        value = self.table[key]
-        ok = any(
-            isinstance(value, k) and not (k in (int, float) and isinstance(value, bool))
-            for k in kinds
-        ) or (float in kinds and isinstance(value, int) and not isinstance(value, bool))
-        if not ok:
-            expected = " or ".join(_NAMES.get(k, k.__name__) for k in kinds)
-            raise ConfigError(f"{self.where}.{key} must be {expected}, got {value!r}")
-        if float in kinds and int not in kinds and isinstance(value, int):
-            value = float(value)
-        return value
-
-    def numbers(self, key: str, default: Any = ..., shape: str = "") -> Any:
-        """A number or a (nested) list of numbers, as a float array."""
-        value = self.get(key, (float, list), default)
-        if value is default and default is not ...:
-            return value
-        try:
-            arr = np.asarray(value, dtype=float)
-        except (TypeError, ValueError) as err:
-            raise ConfigError(
-                f"{self.where}.{key} must be {shape or 'a number or a list of numbers'}, "
-                f"got {value!r}"
-            ) from err
-        return arr
-
-    def choice(self, key: str, valid: tuple[str, ...], default: str) -> str:
-        value = self.get(key, (str,), default)
-        if value not in valid:
-            raise ConfigError(f"{self.where}.{key} = {value!r} is not one of {', '.join(valid)}")
-        return value
-
-    def finish(self) -> None:
-        unknown = [k for k in self.table if k not in self.known]
-        if unknown:
-            raise ConfigError(
-                f"[{self.where}] has unknown key {unknown[0]!r}; valid keys: "
-                f"{', '.join(self.known)}"
-            )
-
 
 # ------------------------------------------------------------------------------ lenses
 
@@ -184,7 +127,7 @@ def lens_from_table(table: dict[str, Any], where: str = "lens") -> LensFile:
     info.lens.effective_focal_length_mm()
     ```
     """
-    t = _Table(table, where)
+    t = Section(table, where)
     name = t.get("name", (str,), "")
     source = t.get("source", (str,), "")
     efl = t.get("stated_effective_focal_length_mm", (float,), None)
@@ -201,7 +144,7 @@ def lens_from_table(table: dict[str, Any], where: str = "lens") -> LensFile:
     }
     stops, overrides = [], {}
     for i, surface in enumerate(surfaces):
-        s = _Table(surface, f"{where}.surfaces[{i}]")
+        s = Section(surface, f"{where}.surfaces[{i}]")
         for key in columns:
             columns[key].append(s.get(key, (float,)))
         s.get("glass", (str,), "")
@@ -260,13 +203,6 @@ def _lens_path(name_or_path: str | Path, base_dir: str | Path | None) -> Path:
     return path
 
 
-def _read_toml(path: Path) -> dict[str, Any]:
-    try:
-        with path.open("rb") as fh:
-            return tomllib.load(fh)
-    except tomllib.TOMLDecodeError as err:
-        raise ConfigError(f"{path}: not valid TOML ({err})") from err
-
 
 def load_lens_file(name_or_path: str | Path, base_dir: str | Path | None = None) -> LensFile:
     """Read a lens prescription: a bundled name (:func:`bundled_lenses`) or a TOML path.
@@ -279,7 +215,7 @@ def load_lens_file(name_or_path: str | Path, base_dir: str | Path | None = None)
     ```
     """
     path = _lens_path(name_or_path, base_dir)
-    info = lens_from_table(_read_toml(path), where=path.name)
+    info = lens_from_table(load_toml(path), where=path.name)
     return LensFile(
         info.lens,
         info.name,
@@ -339,7 +275,7 @@ _LENS_MODEL_KEYS = ("max_reflections", "softness_deg", "min_radius_deg", "focus"
 
 
 def _ghosts_from_table(table: dict[str, Any]) -> GhostSet:
-    t = _Table(table, "model.ghosts")
+    t = Section(table, "model.ghosts")
     position = t.numbers("position_deg", shape="a list of [x, y] pairs")
     radius = t.numbers("radius_deg")
     intensity = t.numbers("intensity_per_sr")
@@ -359,7 +295,7 @@ def _ghosts_from_table(table: dict[str, Any]) -> GhostSet:
 
 
 def _lens_ghosts_from_table(table: dict[str, Any], base_dir: str | Path | None) -> LensGhosts:
-    t = _Table(table, "model.lens")
+    t = Section(table, "model.lens")
     max_reflections = t.get("max_reflections", (int,), 2)
     softness = t.get("softness_deg", (float,), 0.05)
     min_radius = t.get("min_radius_deg", (float,), 0.05)
@@ -374,7 +310,7 @@ def _lens_ghosts_from_table(table: dict[str, Any], base_dir: str | Path | None) 
                 f"[model.lens] with a file takes only reflectance and sensor_reflectance "
                 f"as overrides, got {sorted(extra)[0]!r}"
             )
-        lens_table = {**_read_toml(path), **lens_keys}
+        lens_table = {**load_toml(path), **lens_keys}
         where = f"{path.name} (with model.lens overrides)" if lens_keys else path.name
     else:
         if "surfaces" not in lens_keys:
@@ -433,7 +369,7 @@ def veiling_from_config(
         raise ConfigError("the veiling model is monochrome; wavelengths do not apply to it")
     if "model" not in config:
         raise ConfigError(f"{source}: no [model] section")
-    m = _Table(config["model"], "model")
+    m = Section(config["model"], "model")
     kind = m.get("kind", (str,))
     if kind != "veiling":
         raise ConfigError(f"model.kind = {kind!r}; veiling_from_config reads kind = 'veiling'")
@@ -460,7 +396,7 @@ def veiling_from_config(
         if ghost_table is not None
         else _lens_ghosts_from_table(lens_table, base_dir)
     )
-    out = _Table(config.get("output", {}), "output")
+    out = Section(config.get("output", {}), "output")
     shape = out.get("npix", (int, list), 512)
     scale = out.get("pixel_scale_deg", (float,), 0.05)
     out.finish()
