@@ -10,8 +10,9 @@ from helpers import assert_grad_matches_fd, x64
 from scipy.special import fresnel
 
 from invglare._core.grids import AngularGrid, ApertureGrid, Sampling, check_wavelengths_nm
+from invglare._core.xla import materialise
 from invglare.errors import PhysicsRangeError
-from invglare.optics.fourier import centred_fft2, crop_centred, materialise, mft2, pad_centred
+from invglare.optics.fourier import centred_fft2, crop_centred, mft2, pad_centred
 from invglare.optics.fraunhofer import (
     fraunhofer_fft,
     fraunhofer_mft,

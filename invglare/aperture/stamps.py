@@ -47,9 +47,9 @@ from jaxtyping import Array, ArrayLike, Float
 
 from invglare._core.checks import is_concrete
 from invglare._core.grids import ApertureGrid
+from invglare._core.xla import materialise
 from invglare.aperture.primitives import Capsule, Disk
 from invglare.errors import ConfigError
-from invglare.optics.fourier import materialise
 
 #: Reach (px) of a window beyond the element's half-extent: 0.5 px for rounding the anchor
 #: to its nearest pixel, plus up to ``(|nx| + |ny|) / 2 <= 0.71`` px over which a soft edge

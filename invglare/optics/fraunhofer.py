@@ -24,7 +24,8 @@ import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Complex, Float, Inexact
 
 from invglare._core.grids import AngularGrid, ApertureGrid, nm_to_mm, rad_to_deg
-from invglare.optics.fourier import crop_centred, dft_matrix, materialise, mft2, mft2_matrices
+from invglare._core.xla import materialise
+from invglare.optics.fourier import crop_centred, dft_matrix, mft2, mft2_matrices
 
 # Guards the normalisation of an aperture that transmits nothing (e.g. a pupil of 0 mm).
 _TINY_POWER = 1e-30

@@ -29,8 +29,8 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
 from invglare._core.grids import check_positive, check_wavelengths_nm
+from invglare._core.xla import materialise
 from invglare.errors import ConfigError, PhysicsRangeError
-from invglare.optics.fourier import materialise
 
 #: The temporal-glare sampling: 32 wavelengths from 380 nm in steps of (770 - 380) / 32 nm.
 DEFAULT_WAVELENGTHS = "380:770:32"

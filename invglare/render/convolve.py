@@ -26,8 +26,8 @@ from jaxtyping import Array, ArrayLike, Float
 
 from invglare._core.checks import as_float
 from invglare._core.grids import check_positive
+from invglare._core.xla import materialise
 from invglare.errors import InputDataError, PhysicsRangeError
-from invglare.optics.fourier import materialise
 from invglare.optics.spectral import scale_psf
 
 __all__ = [

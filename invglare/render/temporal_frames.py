@@ -27,10 +27,10 @@ import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float
 
 from invglare._core.checks import as_float
+from invglare._core.xla import materialise
 from invglare.dynamics import DynamicsState
 from invglare.errors import ConfigError, InputDataError
 from invglare.models.temporal import TemporalGlare, check_n_frames, frame_luminance_cd_m2
-from invglare.optics.fourier import materialise
 from invglare.render.convolve import (
     centre_phase,
     crop_psf_reach,
