@@ -20,7 +20,7 @@ from invglare.aperture.camera import (
     polygon_area_factor,
 )
 from invglare.errors import ConfigError, PhysicsRangeError
-from invglare.optics.propagator import Propagator
+from invglare.optics.propagator import make_propagator
 
 LAMBDA_NM = 550.0
 
@@ -28,7 +28,7 @@ LAMBDA_NM = 550.0
 def fft_psf(camera, npix=256, aperture_npix=128):
     """Unit-energy PSF of the camera's whole aperture at 550 nm on the FFT's native grid."""
     window = camera.extent_mm() * aperture_npix / (aperture_npix - 4)
-    prop = Propagator.build(
+    prop = make_propagator(
         window_mm=window,
         focal_length_mm=50.0,
         fft_wavelength_nm=LAMBDA_NM,
@@ -197,7 +197,7 @@ def test_dust_is_on_the_pupil_and_filter_is_the_obstacle():
 
 def _psf_loss(build_camera):
     """A scalar of the PSF of `build_camera(x)`, weighted so it is not just the energy."""
-    prop = Propagator.build(
+    prop = make_propagator(
         window_mm=6.4,
         focal_length_mm=50.0,
         fft_wavelength_nm=LAMBDA_NM,

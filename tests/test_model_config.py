@@ -1,4 +1,4 @@
-"""Model configs: every kind builds, round-trips through model_to_config, and bad keys fail."""
+"""Model configs: every kind builds, round-trips through to_config(), and bad keys fail."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ import pytest
 
 from invglare.aperture.camera import CameraAperture
 from invglare.aperture.eye import EyeAperture
-from invglare.config.model import build_model, model_to_config
+from invglare.config.model import build_model
 from invglare.errors import ConfigError
 from invglare.files.toml import load_toml
 from invglare.models.aperture_psf import AperturePSF
@@ -73,14 +73,14 @@ def test_camera_config_takes_the_diaphragm_focal_length_and_paper_rgb():
 @pytest.mark.parametrize("config", [EYE, CAMERA], ids=["eye", "camera"])
 def test_kakimoto_configs_round_trip_exactly(config):
     model = build_model(config)
-    again = build_model(model_to_config(model))
+    again = build_model(model.to_config())
     np.testing.assert_array_equal(np.asarray(again()), np.asarray(model()))
-    assert model_to_config(again) == model_to_config(model)
+    assert again.to_config() == model.to_config()
 
 
 def test_bundled_eye_example_round_trips():
     model = build_model(load_toml("examples/eye_daylight.toml"), npix=64)
-    assert model_to_config(build_model(model_to_config(model))) == model_to_config(model)
+    assert build_model(model.to_config()).to_config() == model.to_config()
 
 
 def test_aperture_kind_still_needs_shapes_and_rejects_eye_keys():
@@ -119,7 +119,7 @@ def test_veiling_kind_builds_through_the_model_config_and_round_trips():
     model = build_model(config, base_dir="examples")
     image = np.asarray(model((1.0, 0.5)))
     assert np.all(np.isfinite(image)) and image.max() > 0
-    again = build_model(model_to_config(model), base_dir="examples")
+    again = build_model(model.to_config(), base_dir="examples")
     np.testing.assert_array_equal(np.asarray(again((1.0, 0.5))), image)
 
 

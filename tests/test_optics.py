@@ -401,7 +401,7 @@ def test_sampling_rejects_bad_values(build, pattern):
 @pytest.mark.parametrize("window_mm", [4.2, 8.4, 12.6, 105.0 / 16.0])
 def test_mft_field_exactly_at_the_band_edge_is_accepted(window_mm):
     """A field reaching exactly the raster's Nyquist angle is alias-free (rounding aside)."""
-    from invglare.optics.propagator import Propagator
+    from invglare.optics.propagator import make_propagator
 
     n, lam = 128, 530.0
     pitch = window_mm / n
@@ -410,6 +410,6 @@ def test_mft_field_exactly_at_the_band_edge_is_accepted(window_mm):
                   shortest_wavelength_nm=lam, npix=2 * n, aperture_npix=n,
                   method="mft")  # fmt: skip
     for nudge in (1 - 1e-15, 1.0, 1 + 1e-15):
-        Propagator.build(pixel_scale_deg=edge / n * nudge, **common)
+        make_propagator(pixel_scale_deg=edge / n * nudge, **common)
     with pytest.raises(PhysicsRangeError, match="without aliasing"):
-        Propagator.build(pixel_scale_deg=edge / n * 1.001, **common)
+        make_propagator(pixel_scale_deg=edge / n * 1.001, **common)

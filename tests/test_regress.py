@@ -17,7 +17,6 @@ import pytest
 from typer.testing import CliRunner
 
 from invglare.cli import app
-from invglare.config.model import model_to_config
 from invglare.errors import ConfigError, InputDataError, PhysicsRangeError
 from invglare.files.exr import read_exr, write_exr
 from invglare.reference.cie_fit import (
@@ -153,7 +152,7 @@ def test_one_percent_larger_pupil_fails(suite):
 
 
 def test_golden_header_rebuilds_its_model():
-    # The header alone (the full config as model_to_config writes it) reproduces the PSF.
+    # The header alone (the full config as to_config() writes it) reproduces the PSF.
     case = CASE["aperture_mft_mono"]
     golden = read_exr(golden_path(GOLDEN, case))
     assert golden.attrs["regressionCase"] == case.name
@@ -162,7 +161,7 @@ def test_golden_header_rebuilds_its_model():
     psf, model = compute_case(from_header)
     metrics = compare_psfs(golden.data, psf, golden.pixel_scale_deg)
     assert metrics.failures(case.tolerance) == []
-    assert model_to_config(model) == golden.config
+    assert model.to_config() == golden.config
 
 
 # ------------------------------------------------------------------------------ metrics

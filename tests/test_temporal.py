@@ -12,6 +12,7 @@ import pytest
 from helpers import x64
 
 from invglare.aperture.eye import EyeAperture, Eyelashes, Eyelids, Gratings, Particles, Pupil
+from invglare.config.temporal import temporal_from_config
 from invglare.dynamics import (
     EyeDynamics,
     LensMesh,
@@ -23,12 +24,7 @@ from invglare.dynamics import (
 )
 from invglare.errors import ConfigError, InputDataError, PhysicsRangeError
 from invglare.models.kakimoto import KakimotoGlare
-from invglare.models.temporal import (
-    TemporalGlare,
-    frame_luminance_cd_m2,
-    temporal_from_config,
-    temporal_to_config,
-)
+from invglare.models.temporal import TemporalGlare, frame_luminance_cd_m2
 from invglare.optics.fresnel import fresnel_mft
 from invglare.optics.spectral import psf_to_xyz, xyz_to_rgb
 from invglare.render.temporal_frames import frame_convolver, render_frame, render_sequence
@@ -431,9 +427,9 @@ def test_tone_map_is_plain_data_checked_by_the_render_tier(model):
 
 
 def test_config_round_trip_and_errors(model):
-    table = temporal_to_config(model)
+    table = model.to_config()
     again = temporal_from_config(table)
-    assert temporal_to_config(again) == table
+    assert again.to_config() == table
     np.testing.assert_array_equal(jax.random.key_data(again.key), jax.random.key_data(model.key))
     bad = {**table, "model": {**table["model"], "hippus": 1.0}}
     with pytest.raises(ConfigError, match="'hippus'"):

@@ -14,7 +14,7 @@ from helpers import central_difference, x64
 from typer.testing import CliRunner
 
 from invglare.cli import app
-from invglare.config.model import build_model, model_to_config
+from invglare.config.model import build_model
 from invglare.errors import PhysicsRangeError
 from invglare.files.toml import load_toml
 from invglare.fit.ghost_report import ghost_section
@@ -60,7 +60,7 @@ def test_the_light_angle_leaf_is_the_default_direction_and_round_trips():
     assert float(model.veiling_glare_index(1.0)) == pytest.approx(
         float(_model().veiling_glare_index(1.0)), rel=1e-6
     )
-    config = model_to_config(model)
+    config = model.to_config()
     assert config["model"]["light_angle_deg"] == [1.5, -0.75]
     again = build_model(config)
     np.testing.assert_array_equal(np.asarray(again.light_angle_deg), [1.5, -0.75])

@@ -216,7 +216,7 @@ def _position_render(n: int):
     from invglare.render.position_glare import render_position_glare
 
     probe = _kakimoto_eye(n)
-    scale = _POSITION_FRAME_SCALE * float(probe.propagator.output.pixel_scale_deg)
+    scale = _POSITION_FRAME_SCALE * float(probe.pixel_scale_deg)
     angle = np.linspace(0.0, 2.0 * np.pi, _POSITION_LIGHTS, endpoint=False)
     rows = np.round(n // 2 + 0.25 * n * np.sin(angle)).astype(int)
     cols = np.round(n // 2 + 0.25 * n * np.cos(angle)).astype(int)

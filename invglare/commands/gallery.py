@@ -199,7 +199,7 @@ def _row(
     grid = model.propagator.grid
     aperture = np.abs(np.asarray(jax.jit(lambda m: m.field())(model)))
     psf = jax.jit(lambda m: m())(model)
-    own_scale = float(model.propagator.output.pixel_scale_deg)
+    own_scale = float(model.pixel_scale_deg)
     lum = np.asarray(luminance(psf), dtype=np.float64)
     log_psf = np.log10(np.maximum(lum / lum.max(), 10.0**LOG_FLOOR))
 

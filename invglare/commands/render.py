@@ -41,7 +41,7 @@ def psf_at_scale(model, scale_deg: float, max_npix: int):
     from invglare.render.position_glare import psf_npix_at_scale
 
     psf = jax.jit(lambda m: m())(model)
-    own_scale = float(model.propagator.output.pixel_scale_deg)
+    own_scale = float(model.pixel_scale_deg)
     if math.isclose(own_scale, scale_deg, rel_tol=1e-6):
         return psf
     npix = psf_npix_at_scale(psf.shape[0], own_scale, scale_deg, max_npix)
@@ -80,15 +80,17 @@ def run_render(
         raise InputDataError(
             f"{scene} has no pixelScaleDeg header; pass --pixel-scale-deg (degrees per pixel)"
         )
-    from invglare.models.veiling import VeilingGlare
-
-    def scene_grid(kind):
-        # Lens ghosts are no convolution: each light gets the ghosts of its own direction,
-        # on a model built on the scene's grid with its axis at the centre.
-        return dict(npix=tuple(image.shape[:2]), pixel_scale_deg=scale) if kind == "veiling" else {}
-
-    model = _load_model(model_path, scene_grid)
-    if isinstance(model, VeilingGlare):
+    # A model whose image covers the screen (lens ghosts) is built on the scene's grid,
+    # with its axis at the centre; a PSF model at its own sampling.
+    model = _load_model(
+        model_path,
+        lambda kind: (
+            dict(npix=tuple(image.shape[:2]), pixel_scale_deg=scale)
+            if kind.model_class.centre == "axis"
+            else {}
+        ),
+    )
+    if model.centre == "axis":
         from invglare.render.ghost_frames import render_ghosts
 
         bright = _bright(jnp.asarray(image), threshold, max_bright)
@@ -97,12 +99,14 @@ def run_render(
         _write(out, np.asarray(result), scale, model, "ghosts", scene, tonemap_name, params)
         return
     max_npix = 2 * max(image.shape[:2]) + 1
-    if getattr(model, "masking", None) == "position":
-        # Eq. 3: the lashes move with the light, so each light gets its own PSF.
+    if not model.shift_invariant:
+        # Each light gets the PSF of its own direction (Kakimoto eq. 3: the lashes move
+        # with the light), which a convolution cannot do.
         if mode != "billboard":
             raise ConfigError(
-                f"{model_path} has masking = 'position': each light gets the PSF of its own "
-                "direction, which a convolution cannot do; render it with --mode billboard"
+                f"{model_path} depends on the light's direction (e.g. masking = 'position'): "
+                "each light gets its own PSF, which a convolution cannot do; render it with "
+                "--mode billboard"
             )
         from invglare.render.position_glare import render_position_glare
 
@@ -149,14 +153,14 @@ def _tonemap_params(
         return {}
     if name in ("gamma", "srgb"):
         return {"exposure": exposure}
-    if name != "kakimoto" or not hasattr(model, "central_spot_radius_px"):
+    core = None if name != "kakimoto" or model is None else model.core_radius_px()
+    if core is None:
         return {}
     from invglare.render import kakimoto_scene_scale
 
     if psf is None:
         psf = psf_at_scale(model, scale_deg, max_npix)
-    own_scale = float(model.propagator.output.pixel_scale_deg)
-    radius = float(model.central_spot_radius_px()) * own_scale / scale_deg
+    radius = core * float(model.pixel_scale_deg) / scale_deg
     light = float(np.max(image))
     tonemap_scale = float(kakimoto_scene_scale(psf, radius, light))
     log.info(
@@ -171,7 +175,6 @@ def _tonemap_params(
 
 def _write(out: Path, result, scale: float, model, mode: str, scene: Path, tonemap_name, params):
     """A linear EXR (model config in the header) or a tone-mapped PNG."""
-    from invglare.config.model import model_to_config
     from invglare.files.exr import write_exr
     from invglare.files.images import write_png
     from invglare.render import tonemap
@@ -181,7 +184,7 @@ def _write(out: Path, result, scale: float, model, mode: str, scene: Path, tonem
             out,
             result,
             pixel_scale_deg=scale,
-            config=model_to_config(model),
+            config=model.to_config(),
             attrs={"renderMode": mode, "scene": str(scene)},
         )
     else:
@@ -191,14 +194,12 @@ def _write(out: Path, result, scale: float, model, mode: str, scene: Path, tonem
 
 def _load_model(model_path: Path, grid_of=None):
     """The model of a config file; `grid_of(kind)` gives ``npix`` / ``pixel_scale_deg``
-    overrides for a model kind (the file is read once)."""
-    from invglare.config.model import build_model
+    overrides for a registered model kind (the file is read once)."""
+    from invglare.config.model import build_model, config_kind
     from invglare.files.toml import load_toml
 
     config = load_toml(model_path)
-    table = config.get("model")
-    kind = table.get("kind") if isinstance(table, dict) else None
-    grid = grid_of(kind) if grid_of is not None else {}
+    grid = grid_of(config_kind(config, str(model_path))) if grid_of is not None else {}
     return build_model(config, base_dir=model_path.parent, source=str(model_path), **grid)
 
 
@@ -206,9 +207,10 @@ def _bright(image, threshold: float | None, max_bright: int):
     """The lights: the `max_bright` brightest pixels above `threshold` (default max / 100)."""
     import jax.numpy as jnp
 
+    from invglare._core.colour import rec709_luminance
     from invglare.render import bright_pixel_list
 
-    lum = image if image.ndim == 2 else image @ jnp.asarray([0.2126, 0.7152, 0.0722])
+    lum = image if image.ndim == 2 else rec709_luminance(image)
     level = float(jnp.max(lum)) / 100.0 if threshold is None else threshold
     bright = bright_pixel_list(image, level, max_bright)
     if int(bright.n_above) > max_bright:
@@ -282,11 +284,7 @@ def run_animation(
 
     from invglare.files.atomic import atomic_path
     from invglare.files.exr import read_exr, write_exr
-    from invglare.models.temporal import (
-        TemporalGlare,
-        frame_luminance_cd_m2,
-        temporal_to_config,
-    )
+    from invglare.models.temporal import frame_luminance_cd_m2
     from invglare.render import validate_scene
     from invglare.render.temporal_frames import check_display, render_sequence
 
@@ -303,15 +301,17 @@ def run_animation(
             f"{scene} has no pixelScaleDeg header; pass --pixel-scale-deg (degrees per pixel)"
         )
     model = _load_model(model_path)
-    if not isinstance(model, TemporalGlare):
+    if not model.animated:
         raise ConfigError(
-            f"--frames animates a temporal model (model.kind = 'temporal' in {model_path}); "
-            f"this config builds a {type(model).__name__}"
+            f"--frames animates a model with dynamics (e.g. model.kind = 'temporal'); "
+            f"{model_path} builds a static {type(model).__name__}"
         )
     if fps is not None:
         model = model.with_fps(fps)
     if image.ndim == 3 and not model.is_spectral:
-        image = image @ np.asarray([0.2126, 0.7152, 0.0722], image.dtype)
+        from invglare._core.colour import rec709_luminance_np
+
+        image = rec709_luminance_np(image)
     output = "linear" if target == "exr" else "display"
     if output == "display":
         check_display(model)  # an unknown tone map fails before any frame is computed
@@ -322,7 +322,7 @@ def run_animation(
     image = jnp.asarray(image)
     # Start adapted to the scene; a concrete state (not None) keeps one compilation for all chunks.
     state = model.init_state(frame_luminance_cd_m2(image, model.luminance_scale))
-    config = temporal_to_config(model)
+    config = model.to_config()
 
     def frames_out():
         nonlocal state

@@ -81,11 +81,6 @@ def synthesize(spec: SynthSpec) -> tuple[np.ndarray, dict[str, Any]]:
     import equinox as eqx
     import jax
 
-    from invglare.config.model import (
-        model_pixel_scale_deg,
-        model_to_config,
-        model_wavelengths_nm,
-    )
 
     with jax.enable_x64(True):
         forward = build_truth_forward(spec)
@@ -106,9 +101,9 @@ def synthesize(spec: SynthSpec) -> tuple[np.ndarray, dict[str, Any]]:
         expected = np.asarray(expected, dtype=np.float64)
         variance = np.asarray(forward.obs.variance(expected))
         obs = forward.obs
-        model_config = model_to_config(forward.model)
-        model_scale = model_pixel_scale_deg(forward.model)
-        wavelengths = model_wavelengths_nm(forward.model)
+        model_config = forward.model.to_config()
+        model_scale = float(forward.model.pixel_scale_deg)
+        wavelengths = forward.model.wavelengths_nm
 
     if not np.all(np.isfinite(photo)):
         raise ConfigError(f"{spec.path}: the synthetic photo has non-finite pixels")

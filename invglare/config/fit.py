@@ -526,7 +526,7 @@ def _read_truth(
     path: Path, space, forward, discrete: list[DiscreteOption], scale_deg: float
 ) -> tuple[dict[str, float], list[DiscreteOption]]:
     """Truth of each free path, resolved on the forward rebuilt from a ``*.truth.json``."""
-    from invglare.config.model import build_model, model_pixel_scale_deg
+    from invglare.config.model import build_model
     from invglare.fit import Forward, Observation
     from invglare.fit.params import _getter, resolve_path
 
@@ -550,7 +550,7 @@ def _read_truth(
         if p.path == "obs.pixel_scale_ratio":
             # The ratio is model scale / photo scale: the fit's model is built at
             # `scale_deg`, the truth's at its own scale.
-            value *= scale_deg / model_pixel_scale_deg(truth_model)
+            value *= scale_deg / float(truth_model.pixel_scale_deg)
         truth[p.path] = value
     resolved = []
     for d in discrete:

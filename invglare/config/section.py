@@ -67,6 +67,10 @@ class Section:
             raise ConfigError(f"{self.where}.{key} = {value!r} is not one of {', '.join(valid)}")
         return value
 
+    def accept(self, keys) -> None:
+        """Mark `keys` as read (by another reader this table hands them to)."""
+        self._known.extend(keys)
+
     def finish(self) -> None:
         unknown = [k for k in self.table if k not in self._known]
         if unknown:

@@ -37,8 +37,8 @@
     pixel_scale_deg = 0.05
 
 Instead of ``file``, ``[model.lens]`` may hold a prescription itself (the keys of a
-lens file below); :func:`veiling_to_config` writes lenses that way, so fitted lens
-parameters survive the round trip.
+lens file below); a veiling model's ``to_config()`` writes lenses that way, so fitted
+lens parameters survive the round trip.
 
 **Lens file** (``invglare/data/lenses/*.toml``; :func:`load_lens_file`)::
 
@@ -84,11 +84,9 @@ __all__ = [
     "LensFile",
     "bundled_lenses",
     "lens_from_table",
-    "lens_to_table",
     "load_lens",
     "load_lens_file",
     "veiling_from_config",
-    "veiling_to_config",
 ]
 
 #: Where the bundled lens prescriptions live.
@@ -238,36 +236,6 @@ def load_lens(name_or_path: str | Path, base_dir: str | Path | None = None) -> L
     return load_lens_file(name_or_path, base_dir).lens
 
 
-def lens_to_table(lens: Lens) -> dict[str, Any]:
-    """A lens as an inline table (every surface's reflectance explicit).
-
-    ``lens_from_table(lens_to_table(lens)).lens`` rebuilds the same lens.
-    """
-    # Radii from the curvatures in float64, so that they convert back to the same values.
-    curvature = np.asarray(lens.curvature_per_mm, dtype=float)
-    flat = curvature == 0
-    radius = np.where(flat, np.inf, 1.0 / np.where(flat, 1.0, curvature))
-    surfaces = []
-    for i in range(lens.n_surfaces):
-        surface: dict[str, Any] = {
-            "radius_mm": float(radius[i]) if np.isfinite(radius[i]) else 0.0,
-            "thickness_mm": float(lens.thickness_mm[i]),
-            "index": float(lens.index[i]),
-            "semi_aperture_mm": float(lens.semi_aperture_mm[i]),
-            "reflectance": float(lens.reflectance[i]),
-        }
-        if i == lens.stop_index:
-            surface["stop"] = True
-        surfaces.append(surface)
-    table: dict[str, Any] = {
-        "sensor_reflectance": float(lens.sensor_reflectance),
-        "object_index": float(lens.object_index),
-        "surfaces": surfaces,
-    }
-    if lens.name:
-        table = {"name": lens.name, **table}
-    return table
-
 
 # ------------------------------------------------------------------------------ model
 
@@ -318,7 +286,7 @@ def _lens_ghosts_from_table(table: dict[str, Any], base_dir: str | Path | None) 
                 "[model.lens] needs a lens: a 'file' or inline [[model.lens.surfaces]]"
             )
         lens_table, where = lens_keys, "model.lens"
-    t.known.extend(lens_keys)
+    t.accept(lens_keys)
     t.finish()
     lens = lens_from_table(lens_table, where).lens
     if focus:
@@ -412,54 +380,3 @@ def veiling_from_config(
         pixel_scale_deg=scale if pixel_scale_deg is None else pixel_scale_deg,
         **options,
     )
-
-
-def veiling_to_config(model: VeilingGlare) -> dict[str, Any]:
-    """The config of a built veiling model, every choice explicit.
-
-    ``veiling_from_config(veiling_to_config(model))`` rebuilds the same model
-    (lenses are written inline with their current parameter values).
-
-    **Example:**
-
-    ```python
-    cfg = veiling_to_config(model)   # {"model": {"kind": "veiling", ...}, "output": {...}}
-    ```
-    """
-    table: dict[str, Any] = {
-        "kind": "veiling",
-        "profile": model.profile,
-        "n_harmonics": model.n_harmonics,
-        "sigma_strength": float(model.sigma_strength),
-        "window": model.window,
-        "positivity": model.positivity,
-        "pixel_average": model.pixel_average,
-        "quadrature_nodes": model.quadrature_nodes,
-        "period_factor": model.period_factor,
-        "light_angle_deg": np.asarray(model.light_angle_deg, dtype=float).tolist(),
-    }
-    source = model.ghosts
-    if isinstance(source, GhostSet):
-        table["ghosts"] = {
-            "position_deg": np.asarray(source.position_deg, dtype=float).tolist(),
-            "radius_deg": np.asarray(source.radius_deg, dtype=float).tolist(),
-            "intensity_per_sr": np.asarray(source.intensity_per_sr, dtype=float).tolist(),
-            "softness_deg": np.asarray(source.softness_deg, dtype=float).tolist(),
-            "ratio": np.asarray(source.ratio, dtype=float).tolist(),
-            "transmission": float(source.transmission),
-        }
-    else:
-        table["lens"] = {
-            "max_reflections": source.max_reflections,
-            "softness_deg": float(source.softness_deg),
-            "min_radius_deg": float(source.min_radius_deg),
-            **lens_to_table(source.lens),
-        }
-    ny, nx = model.npix
-    return {
-        "model": table,
-        "output": {
-            "npix": ny if ny == nx else [ny, nx],
-            "pixel_scale_deg": model.pixel_scale_deg,
-        },
-    }

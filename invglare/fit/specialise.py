@@ -7,9 +7,10 @@ any value:
 - **stamp windows** (:func:`fit_stamp_windows`): a model built from a config fixes its
   eye's stamp windows with room to spare (1.5 times the elements' current half-extent,
   :meth:`~invglare.aperture.eye.EyeAperture.with_stamp_windows`). Sized for the bounds
-  instead, they are smaller: a stamped element costs its window's area, and in a daylight
-  eye the lash stamps are most of an evaluation. A window only sets which pixels an
-  element is evaluated on, and every pixel the element reaches stays inside it.
+  (the model's ``sized_for``) instead, they are smaller: a stamped element costs its
+  window's area, and in a daylight eye the lash stamps are most of an evaluation. A
+  window only sets which pixels an element is evaluated on, and every pixel the element
+  reaches stays inside it.
 - **identity geometry** (:meth:`~invglare.fit.Observation.with_fixed_geometry`): a
   rescaling by exactly 1 and a rotation by exactly 0 that no parameter changes are
   skipped.
@@ -24,12 +25,11 @@ import equinox as eqx
 import jax
 import numpy as np
 
-from invglare.aperture.eye import EyeAperture
 from invglare.errors import InvglareError
 from invglare.fit.observation import Forward
 from invglare.fit.params import ParameterSpace
 
-#: At most this many free aperture parameters are bounded by their box's corners (2**n
+#: At most this many free model parameters are bounded by their box's corners (2**n
 #: evaluations of the element sizes); with more, the model's own windows are kept.
 MAX_CORNER_PARAMETERS = 8
 
@@ -46,31 +46,23 @@ def specialise_forward(space: ParameterSpace, forward: Forward) -> Forward:
 
 
 def fit_stamp_windows(space: ParameterSpace, forward: Forward) -> Forward:
-    """`forward` with its eye's stamp windows just large enough for every value in bounds.
+    """`forward` with its model's static raster structure just large enough for the box.
 
     The elements' sizes grow monotonically with each size parameter (lengths, thicknesses,
     radii, their spreads, a lash's curvature in absolute value), so the largest element
-    over the box of bounds is found at one of its corners: the windows are sized for the
-    largest over all corners (and the current values), with no extra headroom.
+    over the box of bounds is found at one of its corners: the model is asked
+    (:meth:`~invglare.models.base.AbstractGlareModel.sized_for`) for a copy sized for
+    itself at every corner, with no extra headroom.
 
-    `forward` comes back unchanged where this cannot be decided: a model without an
-    :class:`~invglare.aperture.eye.EyeAperture` and a propagator grid, a free parameter
-    of the propagator (the grid pitch sets a window's size in pixels), an aperture
-    parameter with an infinite bound, more than :data:`MAX_CORNER_PARAMETERS` of them,
-    traced values, or a corner the model refuses.
+    `forward` comes back unchanged where this cannot be decided: no free model parameter,
+    more than :data:`MAX_CORNER_PARAMETERS` of them, an infinite bound, traced values, or
+    a corner the model refuses.
     """
-    model = forward.model
-    aperture = getattr(model, "aperture", None)
-    grid = getattr(getattr(model, "propagator", None), "grid", None)
-    if not isinstance(aperture, EyeAperture) or grid is None:
-        return forward
     leaves = jax.tree_util.tree_leaves(eqx.filter(forward, eqx.is_array))
     if any(isinstance(leaf, jax.core.Tracer) for leaf in leaves):
         return forward
-    if any(p.steps[:2] == ("model", "propagator") for p in space.all):
-        return forward
-    sized = [i for i, p in enumerate(space.all) if p.steps[:2] == ("model", "aperture")]
-    if len(sized) > MAX_CORNER_PARAMETERS:
+    sized = [i for i, p in enumerate(space.all) if p.steps[0] == "model"]
+    if not sized or len(sized) > MAX_CORNER_PARAMETERS:
         return forward
     bounds = [(space.all[i].lower, space.all[i].upper) for i in sized]
     if not all(math.isfinite(v) for pair in bounds for v in pair):
@@ -81,8 +73,10 @@ def fit_stamp_windows(space: ParameterSpace, forward: Forward) -> Forward:
         for corner in itertools.product(*bounds):
             values = base.copy()
             values[sized] = corner
-            corners.append(space.apply(forward, values).model.aperture)
-        fitted = aperture.with_stamp_windows(grid, headroom=1.0, also=corners)
+            corners.append(space.apply(forward, values).model)
+        fitted = forward.model.sized_for(corners)
     except InvglareError:
         return forward
-    return eqx.tree_at(lambda f: f.model.aperture, forward, fitted)
+    if fitted is forward.model:
+        return forward
+    return eqx.tree_at(lambda f: f.model, forward, fitted)

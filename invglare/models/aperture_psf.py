@@ -1,7 +1,7 @@
 """The PSF of a static aperture: the simplest forward model, and the base of the others.
 
 An :class:`AperturePSF` rasterises an :class:`~invglare.aperture.Aperture`,
-propagates it with a :class:`~invglare.optics.propagator.Propagator`
+propagates it with a :class:`~invglare.optics.propagator.AbstractPropagator`
 (Fraunhofer, or with the Fresnel term of eq. 3 of the temporal-glare paper) and
 integrates over its :class:`~invglare.optics.spectral.Spectrum`, returning
 
@@ -15,83 +15,41 @@ power per pixel; for RGB the luminance Y carries that normalisation).
 from __future__ import annotations
 
 from collections.abc import Sequence
+from typing import Any, ClassVar
 
-import equinox as eqx
 import numpy as np
-from jaxtyping import Array, Float
+from jaxtyping import Array, ArrayLike, Float
 
-from invglare.aperture import Aperture
-from invglare.errors import ConfigError, PhysicsRangeError
-from invglare.optics.propagator import Propagator
+from invglare.aperture import Aperture, shape_to_config
+from invglare.models.base import (
+    AbstractGlareModel,
+    broadcast_image,
+    check_no_state,
+    light_angle,
+    light_angles,
+    wavelength_tuple,
+)
+from invglare.models.propagation import build_propagator, central_spot_radius_px
+from invglare.optics.propagator import AbstractPropagator
 from invglare.optics.spectral import Spectrum
 
-
-def default_window_mm(extent_mm: float, aperture_npix: int) -> float:
-    """An aperture window holding `extent_mm` with two empty pixels on each side."""
-    return extent_mm * aperture_npix / (aperture_npix - 4)
+#: What every PSF of a propagator holds per pixel (for file headers).
+PSF_NORMALISATION = "fraction of the transmitted power per pixel (Y sums to 1 over the full plane)"
 
 
-def build_propagator(
-    extent_mm: float,
-    spectrum: Spectrum,
-    *,
-    focal_length_mm: float,
-    npix: int,
-    pixel_scale_deg: float | None,
-    aperture_npix: int,
-    window_mm: float | None,
-    propagation: str,
-    method: str,
-) -> Propagator:
-    """A propagator whose window holds an aperture of `extent_mm` and suits the spectrum."""
-    if window_mm is None:
-        window_mm = default_window_mm(extent_mm, aperture_npix)
-    if extent_mm > window_mm * (1 + 1e-6):
-        raise PhysicsRangeError(
-            f"the aperture ({extent_mm:g} mm across) does not fit in window_mm = {window_mm:g}"
-        )
-    computed = spectrum.computed_wavelengths_nm
-    if method == "fft" and spectrum.is_spectral and spectrum.spectral == "exact":
-        raise ConfigError(
-            "a spectral PSF on the FFT path needs spectral = 'scaled'; for exact "
-            "per-wavelength transforms set pixel_scale_deg and method = 'mft'"
-        )
-    propagator = Propagator.build(
-        window_mm=window_mm,
-        focal_length_mm=focal_length_mm,
-        fft_wavelength_nm=computed[0],
-        shortest_wavelength_nm=min(computed),
-        npix=npix,
-        pixel_scale_deg=pixel_scale_deg,
-        aperture_npix=aperture_npix,
-        propagation=propagation,
-        method=method,
-    )
-    if propagator.method == "fft" and len(computed) > 1:
-        # "auto" chose the FFT for the first wavelength; the others need other scales.
-        return build_propagator(
-            extent_mm,
-            spectrum,
-            focal_length_mm=focal_length_mm,
-            npix=npix,
-            pixel_scale_deg=float(propagator.output.pixel_scale_deg),
-            aperture_npix=aperture_npix,
-            window_mm=window_mm,
-            propagation=propagation,
-            method="mft",
-        )
-    return propagator
-
-
-class AperturePSF(eqx.Module):
+class AperturePSF(AbstractGlareModel):
     """PSF of an aperture for a spectrum, on the propagator's angular output grid.
 
-    Build one with :meth:`build`, which picks the sampling and the method.
+    Build one with :meth:`build`, which picks the sampling and the method. The PSF does
+    not depend on the light's direction (shift invariant): a light angle passed to a call
+    is checked and otherwise ignored.
     """
 
     aperture: Aperture
-    propagator: Propagator
+    propagator: AbstractPropagator
     spectrum: Spectrum
+    centre: ClassVar[str] = "light"
+    animated: ClassVar[bool] = False
 
     @classmethod
     def build(
@@ -162,6 +120,90 @@ class AperturePSF(eqx.Module):
         """The rasterised aperture transmission on the propagator's grid."""
         return self.aperture.transmission(self.propagator.grid)
 
-    def __call__(self) -> Float[Array, "npix npix"] | Float[Array, "npix npix 3"]:
+    def psf(self) -> Float[Array, "npix npix"] | Float[Array, "npix npix 3"]:
+        """The PSF: mono ``(npix, npix)`` for one wavelength, linear RGB ``(npix, npix, 3)``."""
         field = self.transmission()
         return self.spectrum.integrate(lambda lam: self.propagator(field, lam))
+
+    # ------------------------------------------------------------------ the model interface
+
+    def __call__(
+        self, light_angle_deg: Float[ArrayLike, " 2"] | None = None, *, state: Any = None
+    ) -> Float[Array, "npix npix"] | Float[Array, "npix npix 3"]:
+        """The PSF (the same for every light direction; see :meth:`psf`)."""
+        light_angle(light_angle_deg)
+        check_no_state(self, state)
+        return self.psf()
+
+    def batch(self, light_angles_deg, batch_size=None):
+        """The PSF once per light, ``(K, npix, npix[, 3])`` (computed once)."""
+        return broadcast_image(self.psf(), light_angles(light_angles_deg).shape[0])
+
+    @property
+    def pixel_scale_deg(self):
+        return self.propagator.output.pixel_scale_deg
+
+    @property
+    def wavelengths_nm(self) -> tuple[float, ...]:
+        return wavelength_tuple(self.spectrum.wavelengths_nm)
+
+    @property
+    def shift_invariant(self) -> bool:
+        return True
+
+    def core_radius_px(self) -> float:
+        return float(
+            central_spot_radius_px(
+                self.transmission(),
+                self.propagator.grid,
+                max(self.wavelengths_nm),
+                self.propagator.output,
+            )
+        )
+
+    def header(self) -> dict[str, Any]:
+        return {
+            "psfNormalisation": PSF_NORMALISATION,
+            "propagationMethod": self.propagator.method,
+        }
+
+    def sized_for(self, others) -> AperturePSF:
+        return self  # analytic shapes: no static raster structure to size
+
+    def to_config(self) -> dict[str, Any]:
+        return {
+            "model": {
+                "kind": "aperture",
+                **propagator_table(self.propagator),
+                "shapes": [shape_to_config(s) for s in self.aperture.shapes],
+            },
+            **output_and_spectrum_tables(self.propagator, self.spectrum),
+        }
+
+
+def propagator_table(prop: AbstractPropagator) -> dict[str, Any]:
+    """The `[model]` keys of a propagator's choices."""
+    return {
+        "focal_length_mm": float(prop.focal_length_mm),
+        "propagation": prop.propagation,
+        "aperture_npix": prop.grid.npix,
+        "window_mm": float(prop.grid.width_mm),
+        "method": prop.method,
+    }
+
+
+def output_and_spectrum_tables(prop: AbstractPropagator, spec: Spectrum) -> dict[str, Any]:
+    """The `[output]` and `[spectrum]` tables of a raster model (every choice explicit)."""
+    return {
+        "output": {
+            "npix": prop.output.npix,
+            "pixel_scale_deg": float(prop.output.pixel_scale_deg),
+        },
+        "spectrum": {
+            "wavelengths_nm": [float(w) for w in np.asarray(spec.wavelengths_nm).reshape(-1)],
+            "spectral": spec.spectral,
+            "reference_wavelength_nm": spec.reference_wavelength_nm,
+            "illuminant": spec.illuminant,
+            "colourspace": spec.colourspace,
+        },
+    }

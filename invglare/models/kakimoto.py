@@ -60,7 +60,8 @@ or a monochrome PSF for a single wavelength).
 from __future__ import annotations
 
 import math
-from typing import Any, Protocol, runtime_checkable
+from collections.abc import Sequence
+from typing import Any, ClassVar, Protocol, runtime_checkable
 
 import equinox as eqx
 import jax
@@ -68,11 +69,30 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
-from invglare._core.checks import as_float
+from invglare._core.checks import as_float, check_range, choose
 from invglare._core.grids import ApertureGrid
+from invglare.aperture.camera import CameraAperture, camera_to_config
+from invglare.aperture.eye import EyeAperture, eye_to_config
 from invglare.errors import ConfigError, PhysicsRangeError
-from invglare.models.aperture_psf import build_propagator
-from invglare.optics.propagator import Propagator, choose
+from invglare.models.aperture_psf import (
+    PSF_NORMALISATION,
+    output_and_spectrum_tables,
+    propagator_table,
+)
+from invglare.models.base import (
+    AbstractGlareModel,
+    check_no_state,
+    light_angle,
+    light_angles,
+    map_lights,
+    wavelength_tuple,
+)
+from invglare.models.propagation import (
+    AIRY_FIRST_ZERO,
+    build_propagator,
+    central_spot_radius_px,
+)
+from invglare.optics.propagator import AbstractPropagator
 from invglare.optics.spectral import DEFAULT_WAVELENGTHS, Spectrum, parse_wavelengths
 
 __all__ = [
@@ -91,8 +111,6 @@ MASKINGS = ("fixed", "position")
 COLOURS = ("paper_rgb", "spectral")
 #: The paper's wavelengths (nm) for the R, G and B channels (sec. 3.2).
 PAPER_RGB_NM = (680.0, 530.0, 460.0)
-#: First zero of the Airy pattern, in units of wavelength / diameter (rad).
-AIRY_FIRST_ZERO = 1.2196698912665045
 
 
 @runtime_checkable
@@ -114,34 +132,9 @@ class ObstacleAperture(Protocol):
         ...
 
 
-def _check_non_negative(name: str, value, unit: str) -> None:
-    if isinstance(value, jax.core.Tracer):
-        return
-    arr = np.asarray(value, dtype=float)
-    if arr.shape != () or not np.isfinite(arr) or arr < 0:
-        shown = f"{arr.item():g}" if arr.size == 1 else f"an array of shape {arr.shape}"
-        raise PhysicsRangeError(f"{name} must be a finite number >= 0 {unit}, got {shown}")
 
 
-def _check_angles(light_angle_deg: Array, batched: bool) -> None:
-    """Shape (2,) or (K, 2); concrete values must be finite and within +-90 deg."""
-    expected = "(K, 2)" if batched else "(2,)"
-    ok = light_angle_deg.ndim == (2 if batched else 1) and light_angle_deg.shape[-1] == 2
-    if not ok:
-        raise PhysicsRangeError(
-            f"light_angle_deg must have shape {expected} (x, y angles in deg), "
-            f"got shape {light_angle_deg.shape}"
-        )
-    if isinstance(light_angle_deg, jax.core.Tracer):
-        return
-    arr = np.asarray(light_angle_deg, dtype=float)
-    if not np.all(np.isfinite(arr)) or np.any(np.abs(arr) >= 90.0):
-        raise PhysicsRangeError(
-            f"light_angle_deg must be finite and within (-90, 90) deg, got {arr.tolist()}"
-        )
-
-
-class KakimotoGlare(eqx.Module):
+class KakimotoGlare(AbstractGlareModel):
     """Glare PSF of an obstacle image masked by a pupil (Kakimoto et al., eq. 3 and 5).
 
     Build one with :meth:`build`, which picks the sampling (the same rules as
@@ -150,7 +143,7 @@ class KakimotoGlare(eqx.Module):
     **Fields:**
 
     - `aperture`: an :class:`ObstacleAperture` (eye or camera).
-    - `propagator`: the :class:`~invglare.optics.propagator.Propagator` (aperture grid,
+    - `propagator`: the :class:`~invglare.optics.propagator.AbstractPropagator` (aperture grid,
       output grid, FFT or MFT).
     - `spectrum`: the :class:`~invglare.optics.spectral.Spectrum`; for ``"paper_rgb"`` its
       three wavelengths are the R, G, B channels.
@@ -162,12 +155,14 @@ class KakimotoGlare(eqx.Module):
     """
 
     aperture: Any
-    propagator: Propagator
+    propagator: AbstractPropagator
     spectrum: Spectrum
     obstacle_distance_mm: Float[Array, ""] = eqx.field(converter=as_float)
     masking: str = eqx.field(static=True, default="fixed")
     colour: str = eqx.field(static=True, default="paper_rgb")
     max_light_angle_deg: float = eqx.field(static=True, default=0.0)
+    centre: ClassVar[str] = "light"
+    animated: ClassVar[bool] = False
 
     def __check_init__(self):
         if not isinstance(self.aperture, ObstacleAperture):
@@ -178,7 +173,7 @@ class KakimotoGlare(eqx.Module):
             )
         choose("masking", self.masking, MASKINGS)
         choose("colour", self.colour, COLOURS)
-        _check_non_negative("obstacle_distance_mm", self.obstacle_distance_mm, "mm")
+        check_range("obstacle_distance_mm", self.obstacle_distance_mm, 0.0, unit="mm")
         if self.colour == "paper_rgb" and self.spectrum.wavelengths_nm.shape[0] != 3:
             raise ConfigError(
                 "colour = 'paper_rgb' needs exactly three wavelengths (R, G, B), got "
@@ -253,8 +248,8 @@ class KakimotoGlare(eqx.Module):
         """
         choose("colour", colour, COLOURS)
         choose("masking", masking, MASKINGS)
-        _check_non_negative("obstacle_distance_mm", obstacle_distance_mm, "mm")
-        _check_non_negative("max_light_angle_deg", max_light_angle_deg, "deg")
+        check_range("obstacle_distance_mm", obstacle_distance_mm, 0.0, unit="mm")
+        check_range("max_light_angle_deg", max_light_angle_deg, 0.0, unit="deg")
         if not max_light_angle_deg < 90.0:
             raise PhysicsRangeError(
                 f"max_light_angle_deg must be < 90 deg, got {max_light_angle_deg!r}"
@@ -348,9 +343,9 @@ class KakimotoGlare(eqx.Module):
     # ----------------------------------------------------------------------------- outputs
 
     def __call__(
-        self, light_angle_deg: Float[ArrayLike, " 2"] = (0.0, 0.0)
+        self, light_angle_deg: Float[ArrayLike, " 2"] | None = None, *, state: Any = None
     ) -> Float[Array, "npix npix"] | Float[Array, "npix npix 3"]:
-        """Glare PSF for a light at `light_angle_deg` = (x, y) deg, centred on the output grid.
+        """Glare PSF for a light at `light_angle_deg` = (x, y) deg (None: on axis).
 
         **Returns:** ``(npix, npix, 3)`` for RGB, ``(npix, npix)`` for a single
         wavelength. The PSF is centred at ``(npix // 2, npix // 2)`` whatever the angle:
@@ -362,8 +357,8 @@ class KakimotoGlare(eqx.Module):
         psf = model((3.0, -1.0))   # light 3 deg right and 1 deg down
         ```
         """
-        angle = as_float(light_angle_deg)
-        _check_angles(angle, batched=False)
+        angle = light_angle(light_angle_deg)
+        check_no_state(self, state)
         return self._psf(self.field(angle))
 
     def batch(
@@ -386,18 +381,59 @@ class KakimotoGlare(eqx.Module):
         psfs = eqx.filter_jit(model.batch)(angles)   # (64, npix, npix, 3)
         ```
         """
-        angles = as_float(light_angles_deg)
-        _check_angles(angles, batched=True)
+        angles = light_angles(light_angles_deg)
         if self.masking == "fixed":
             psf = self._psf(self.field())
             return jnp.broadcast_to(psf, (angles.shape[0], *psf.shape))
+        return map_lights(lambda angle: self._psf(self.field(angle)), angles, batch_size)
 
-        def one(angle):
-            return self._psf(self.field(angle))
+    # ------------------------------------------------------------------ the model interface
 
-        if batch_size is None:
-            return jax.vmap(one)(angles)
-        return jax.lax.map(one, angles, batch_size=int(batch_size))
+    @property
+    def pixel_scale_deg(self):
+        return self.propagator.output.pixel_scale_deg
+
+    @property
+    def wavelengths_nm(self) -> tuple[float, ...]:
+        return wavelength_tuple(self.spectrum.wavelengths_nm)
+
+    @property
+    def shift_invariant(self) -> bool:
+        """Eq. 5 (fixed mask) is shift invariant; eq. 3 (the mask moves) is not."""
+        return self.masking == "fixed"
+
+    def core_radius_px(self) -> float:
+        return float(self.central_spot_radius_px())
+
+    def header(self) -> dict[str, Any]:
+        return {
+            "psfNormalisation": PSF_NORMALISATION,
+            "propagationMethod": self.propagator.method,
+        }
+
+    def sized_for(self, others: Sequence[KakimotoGlare]) -> KakimotoGlare:
+        """The eye's stamp windows sized for this model and `others` (no headroom).
+
+        Comes back unchanged for an aperture without stamp windows (a camera) and where
+        the others' aperture grids differ from this one's (a free grid pitch sets a
+        window's size in pixels).
+        """
+        grid = self.propagator.grid
+        if not isinstance(self.aperture, EyeAperture):
+            return self
+        if any(not _same_grid(o.propagator.grid, grid) for o in others):
+            return self
+        fitted = self.aperture.with_stamp_windows(
+            grid, headroom=1.0, also=[o.aperture for o in others]
+        )
+        return eqx.tree_at(lambda m: m.aperture, self, fitted)
+
+    def to_config(self) -> dict[str, Any]:
+        choices = kakimoto_to_config(self)
+        table = {"kind": _aperture_kind(self.aperture), **propagator_table(self.propagator)}
+        table |= {k: choices[k] for k in _GLARE_KEYS}
+        table[table["kind"]] = _aperture_table(self.aperture)
+        return {"model": table, **output_and_spectrum_tables(self.propagator, self.spectrum)}
 
     # ----------------------------------------------------------------------------- helpers
 
@@ -416,11 +452,12 @@ class KakimotoGlare(eqx.Module):
         ```
         """
         grid = self.propagator.grid
-        pupil = self.aperture.pupil_transmission(grid)
-        area_mm2 = jnp.sum(pupil) * grid.pitch_mm**2
-        d_eq_mm = 2.0 * jnp.sqrt(area_mm2 / math.pi)
-        lam_mm = jnp.max(self.spectrum.wavelengths_nm) * 1e-6
-        return AIRY_FIRST_ZERO * lam_mm / d_eq_mm / self.propagator.output.pixel_scale_rad
+        return central_spot_radius_px(
+            self.aperture.pupil_transmission(grid),
+            grid,
+            jnp.max(self.spectrum.wavelengths_nm),
+            self.propagator.output,
+        )
 
     def transmitted_fraction(
         self, light_angle_deg: Float[ArrayLike, " 2"] = (0.0, 0.0)
@@ -444,6 +481,28 @@ class KakimotoGlare(eqx.Module):
         """
         shift = self.obstacle_distance_mm * math.tan(math.radians(self.max_light_angle_deg))
         return self.propagator.grid.width_mm + 2.0 * shift
+
+
+#: The [model] keys of the Kakimoto choices (beside the propagator's).
+_GLARE_KEYS = ("obstacle_distance_mm", "masking", "colour", "max_light_angle_deg")
+
+
+def _same_grid(a: ApertureGrid, b: ApertureGrid) -> bool:
+    return a.npix == b.npix and float(a.pitch_mm) == float(b.pitch_mm)
+
+
+def _aperture_kind(aperture: Any) -> str:
+    if isinstance(aperture, EyeAperture):
+        return "eye"
+    if isinstance(aperture, CameraAperture):
+        return "camera"
+    raise ConfigError(f"no config form for a Kakimoto model of a {type(aperture).__name__}")
+
+
+def _aperture_table(aperture: Any) -> dict[str, Any]:
+    if isinstance(aperture, EyeAperture):
+        return eye_to_config(aperture)
+    return camera_to_config(aperture)
 
 
 def kakimoto_to_config(model: KakimotoGlare) -> dict[str, Any]:

@@ -44,7 +44,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from typing import Any
+from typing import Any, ClassVar
 
 import equinox as eqx
 import jax
@@ -53,7 +53,7 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Float, Key
 
 from invglare._core.checks import as_float, as_key
-from invglare.aperture.eye import EyeAperture, Particles
+from invglare.aperture.eye import EyeAperture, Particles, eye_to_config
 from invglare.dynamics import (
     DynamicsState,
     EyeDynamics,
@@ -65,10 +65,22 @@ from invglare.dynamics.lens import safe_sqrt
 from invglare.dynamics.noise import uniform
 from invglare.dynamics.pupil import MOON_SPENCER_RANGE_MM
 from invglare.errors import ConfigError, PhysicsRangeError
-from invglare.models.aperture_psf import build_propagator, default_window_mm
+from invglare.models.aperture_psf import PSF_NORMALISATION
+from invglare.models.base import (
+    AbstractGlareModel,
+    broadcast_image,
+    light_angle,
+    light_angles,
+    wavelength_tuple,
+)
+from invglare.models.propagation import (
+    build_propagator,
+    central_spot_radius_px,
+    default_window_mm,
+)
 from invglare.optics.fraunhofer import intensity_fft, transmitted_power
 from invglare.optics.fresnel import fresnel_phase
-from invglare.optics.propagator import Propagator
+from invglare.optics.propagator import AbstractPropagator
 from invglare.optics.spectral import DEFAULT_WAVELENGTHS, Spectrum, scaled_copies, xyz_to_rgb
 
 __all__ = [
@@ -77,8 +89,6 @@ __all__ = [
     "TemporalGlare",
     "check_n_frames",
     "frame_luminance_cd_m2",
-    "temporal_from_config",
-    "temporal_to_config",
 ]
 
 #: How a frame's PSF is scaled: unit energy, or by the power the aperture transmits (mm^2).
@@ -110,10 +120,11 @@ class SequenceConstants(eqx.Module):
     depths_mm: tuple  # per moving population: the particles' coordinate along the axis
 
 
-class TemporalGlare(eqx.Module):
+class TemporalGlare(AbstractGlareModel):
     """The temporal glare model: a dynamic eye, its spectral Fresnel PSF, glare on frames.
 
-    Build one with :meth:`build` (or from a config with :func:`temporal_from_config`).
+    Build one with :meth:`build` (or from a config with
+    :func:`invglare.config.temporal.temporal_from_config`).
 
     **Fields:**
 
@@ -143,7 +154,7 @@ class TemporalGlare(eqx.Module):
     eye: EyeAperture
     dynamics: EyeDynamics
     key: Key[Array, ""] = eqx.field(converter=as_key)
-    propagator: Propagator
+    propagator: AbstractPropagator
     spectrum: Spectrum
     field_luminance_cd_m2: Float[Array, ""] = eqx.field(converter=as_float)
     luminance_scale: Float[Array, ""] = eqx.field(converter=as_float)
@@ -155,6 +166,8 @@ class TemporalGlare(eqx.Module):
     tonemap_params: tuple[tuple[str, float], ...] = eqx.field(
         static=True, default=(("exposure", 1.0), ("gamma", 2.2))
     )
+    centre: ClassVar[str] = "light"
+    animated: ClassVar[bool] = True
 
     # ----------------------------------------------------------------------------- build
 
@@ -514,9 +527,82 @@ class TemporalGlare(eqx.Module):
         cf = self.psf_cf(self.sequence_constants(), state)
         return cf[0] if not self.is_spectral else jnp.moveaxis(cf, 0, -1)
 
-    def __call__(self, state: DynamicsState | None = None) -> Float[Array, "npix npix *c"]:
-        """Same as :meth:`psf`: a frame's PSF (the static-model interface)."""
+    # ------------------------------------------------------------------ the model interface
+
+    def __call__(
+        self, light_angle_deg: Float[ArrayLike, " 2"] | None = None, *, state: Any = None
+    ) -> Float[Array, "npix npix *c"]:
+        """A frame's PSF (see :meth:`psf`); the same for every light direction."""
+        light_angle(light_angle_deg)
         return self.psf(state)
+
+    def batch(self, light_angles_deg, batch_size=None) -> Float[Array, "K npix npix *c"]:
+        """The resting eye's PSF once per light (computed once)."""
+        return broadcast_image(self.psf(), light_angles(light_angles_deg).shape[0])
+
+    @property
+    def wavelengths_nm(self) -> tuple[float, ...]:
+        return wavelength_tuple(self.spectrum.wavelengths_nm)
+
+    @property
+    def shift_invariant(self) -> bool:
+        return True
+
+    def core_radius_px(self) -> float:
+        """The resting eye's central spot (its pupil at :attr:`field_luminance_cd_m2`)."""
+        return float(
+            central_spot_radius_px(
+                self.aperture(),
+                self.propagator.grid,
+                max(self.wavelengths_nm),
+                self.propagator.output,
+            )
+        )
+
+    def header(self) -> dict[str, Any]:
+        return {
+            "psfNormalisation": PSF_NORMALISATION
+            if self.brightness == "unit"
+            else "transmitted power per pixel (mm^2)",
+            "propagationMethod": "fft",
+            "fps": self.fps,
+        }
+
+    def sized_for(self, others) -> TemporalGlare:
+        return self  # the eye's windows are sized for the dynamics' range when built
+
+    def to_config(self) -> dict[str, Any]:
+        """The config of this model, every choice explicit (same key, sampling, dynamics
+        and eye): ``build_model(model.to_config())`` rebuilds it."""
+        prop, spec = self.propagator, self.spectrum
+        table: dict[str, Any] = {
+            "kind": "temporal",
+            "focal_length_mm": float(prop.focal_length_mm),
+            "aperture_npix": prop.grid.npix,
+            "window_mm": float(prop.grid.width_mm),
+            "fps": self.fps,
+            "key_data": [int(v) for v in np.asarray(jax.random.key_data(self.key)).ravel()],
+            "field_luminance_cd_m2": float(self.field_luminance_cd_m2),
+            "luminance_scale": float(self.luminance_scale),
+            "brightness": self.brightness,
+            "tonemap": self.tonemap_name,
+            "tonemap_params": dict(self.tonemap_params),
+            "eye": eye_to_config(self.eye),
+            "dynamics": {
+                name: _part_table(getattr(self.dynamics, name)) for name in _DYNAMICS_PARTS
+            },
+        }
+        return {
+            "model": table,
+            "output": {"npix": prop.output.npix},
+            "spectrum": {
+                "wavelengths_nm": [float(w) for w in spec.wavelengths_nm],
+                "spectral": "scaled",
+                "reference_wavelength_nm": spec.reference_wavelength_nm,
+                "illuminant": spec.illuminant,
+                "colourspace": spec.colourspace,
+            },
+        }
 
     def psf_sequence(
         self,
@@ -562,53 +648,6 @@ def check_n_frames(n_frames: int) -> None:
 _DYNAMICS_PARTS = ("pupil", "accommodation", "lens", "vitreous", "lids")
 
 
-def _part_classes() -> dict[str, type]:
-    from invglare.dynamics import Accommodation, LensMesh, LidMotion, PupilDynamics, VitreousBody
-
-    return {
-        "pupil": PupilDynamics,
-        "accommodation": Accommodation,
-        "lens": LensMesh,
-        "vitreous": VitreousBody,
-        "lids": LidMotion,
-    }
-
-
-def _read_part(cls: type, table: Any, where: str):
-    """Build a dynamics part from a table whose keys are the part's fields."""
-    from invglare.config.section import Section
-
-    sec = Section(table, where)
-    args: dict[str, Any] = {}
-    for f in dataclasses.fields(cls):
-        default = f.default if f.default is not dataclasses.MISSING else None
-        if isinstance(default, bool):
-            kind: Any = bool
-        elif isinstance(default, int):
-            kind = int
-        elif isinstance(default, tuple):
-            kind = list
-        else:
-            kind = float
-        value = sec.get(f.name, kind, None)
-        if value is None:
-            continue
-        if kind is list:
-            if len(value) != len(default) or not all(
-                isinstance(v, int | float) and not isinstance(v, bool) for v in value
-            ):
-                raise ConfigError(
-                    f"{where}.{f.name} must be a list of {len(default)} numbers, got {value!r}"
-                )
-            value = tuple(float(v) for v in value)
-        args[f.name] = value
-    sec.finish()
-    try:
-        return cls(**args)
-    except (ConfigError, PhysicsRangeError) as err:
-        raise type(err)(f"{where}: {err}") from err
-
-
 def _part_table(part) -> dict[str, Any]:
     out: dict[str, Any] = {}
     for f in dataclasses.fields(part):
@@ -623,163 +662,3 @@ def _part_table(part) -> dict[str, Any]:
                 str(np.asarray(value).item() if value.dtype == np.float64 else np.float32(value))
             )
     return out
-
-
-def temporal_from_config(
-    config: dict[str, Any],
-    base_dir: Any = None,
-    *,
-    npix: int | None = None,
-    pixel_scale_deg: float | None = None,
-    wavelengths_nm: Any = None,
-) -> TemporalGlare:
-    """Build a :class:`TemporalGlare` from a model config (``model.kind = "temporal"``).
-
-    **Arguments:**
-
-    - `config`: the whole parsed TOML (sections ``model``, ``output``, ``spectrum``).
-    - `base_dir`: where relative paths would be resolved (the temporal model has none;
-      accepted for the common interface).
-    - `npix`, `wavelengths_nm`: overrides of ``output.npix`` and
-      ``spectrum.wavelengths_nm``; `pixel_scale_deg` is refused (the PSF is at the FFT's
-      native scale).
-
-    ```toml
-    [model]
-    kind = "temporal"
-    aperture_npix = 256            # default output.npix / 2
-    focal_length_mm = 1000.0       # distance in E (default: the shortest the raster resolves)
-    window_mm = 8.5                # default: the largest pupil of the dynamics + 2 px
-    fps = 30.0
-    seed = 0                       # or key_data = [..] (what temporal_to_config writes)
-    field_luminance_cd_m2 = 100.0  # adaptation when no frame is given
-    luminance_scale = 1.0          # cd/m^2 per frame unit
-    brightness = "unit"            # or "transmitted"
-    tonemap = "gamma"              # any of invglare.render.TONEMAPS
-    [model.tonemap_params]         # keyword parameters of the tone map
-    exposure = 1.0
-    gamma = 2.2
-    [model.eye]                    # invglare.aperture.eye.eye_from_config
-    [model.dynamics.pupil]         # fields of PupilDynamics (and of Accommodation,
-    hippus_amplitude_mm = 0.1      #   LensMesh, VitreousBody, LidMotion in
-    [model.dynamics.lids]          #   [model.dynamics.accommodation], .lens, .vitreous,
-    interval_s = 4.0               #   .lids)
-    [output]
-    npix = 512
-    [spectrum]
-    wavelengths_nm = "380:770:32"  # spectral = "scaled" only
-    reference_wavelength_nm = 575.0
-    illuminant = "E"
-    colourspace = "sRGB"
-    ```
-
-    **Raises:** `ConfigError` naming the key for unknown keys, wrong types or choices;
-    `PhysicsRangeError` for values out of range.
-    """
-    from invglare.aperture.eye import eye_from_config
-    from invglare.config.section import Section, check_sections
-
-    del base_dir  # no file references in a temporal model
-    check_sections(config, ("model", "output", "spectrum"), "config")
-    model = Section(config.get("model", {}), "model")
-    kind = model.get("kind", str, required=True)
-    if kind != "temporal":
-        raise ConfigError(f"model.kind = {kind!r}; temporal_from_config reads kind = 'temporal'")
-    eye = eye_from_config(model.get("eye", dict, required=True), "model.eye")
-    dyn_table = Section(model.get("dynamics", dict, {}), "model.dynamics")
-    classes = _part_classes()
-    parts = {
-        name: _read_part(classes[name], dyn_table.get(name, dict, {}), f"model.dynamics.{name}")
-        for name in _DYNAMICS_PARTS
-    }
-    dyn_table.finish()
-    if "seed" in model.table and "key_data" in model.table:
-        raise ConfigError("model: give seed or key_data, not both")
-    key_data = model.get("key_data", list, None)
-    if key_data is not None:
-        if not key_data or not all(isinstance(v, int) and 0 <= v < 2**32 for v in key_data):
-            raise ConfigError(f"model.key_data must be a list of uint32 integers, got {key_data!r}")
-        key: Any = jax.random.wrap_key_data(np.asarray(key_data, np.uint32))
-    else:
-        key = model.get("seed", int, 0)
-    params = Section(model.get("tonemap_params", dict, {}), "model.tonemap_params")
-    for name in params.table:
-        params.get(name, float)
-    kwargs = dict(
-        focal_length_mm=model.get("focal_length_mm", float, None),
-        aperture_npix=model.get("aperture_npix", int, None),
-        window_mm=model.get("window_mm", float, None),
-        fps=model.get("fps", float, 30.0),
-        key=key,
-        field_luminance_cd_m2=model.get("field_luminance_cd_m2", float, 100.0),
-        luminance_scale=model.get("luminance_scale", float, 1.0),
-        brightness=model.choice("brightness", BRIGHTNESS, "unit"),
-        tonemap_name=model.get("tonemap", str, "gamma"),
-        tonemap_params={k: float(v) for k, v in params.table.items()} or None,
-    )
-    model.finish()
-    output = Section(config.get("output", {}), "output")
-    out_npix = output.get("npix", int, 512)
-    if output.get("pixel_scale_deg", float, None) is not None or pixel_scale_deg is not None:
-        raise ConfigError(
-            "the temporal model computes its PSF at the FFT's native pixel scale; drop "
-            "output.pixel_scale_deg (frames at another scale get a resampled PSF)"
-        )
-    output.finish()
-    spectrum = Section(config.get("spectrum", {}), "spectrum")
-    lams = spectrum.get("wavelengths_nm", (float, list, str), DEFAULT_WAVELENGTHS)
-    # One FFT per frame: the spectrum is made of scaled copies, so "exact" is refused.
-    spectrum.choice("spectral", ("scaled",), "scaled")
-    colour = dict(
-        reference_wavelength_nm=spectrum.get("reference_wavelength_nm", float, 575.0),
-        illuminant=spectrum.get("illuminant", str, "E"),
-        colourspace=spectrum.get("colourspace", str, "sRGB"),
-    )
-    spectrum.finish()
-    return TemporalGlare.build(
-        eye,
-        EyeDynamics(**parts),
-        npix=out_npix if npix is None else npix,
-        wavelengths_nm=lams if wavelengths_nm is None else wavelengths_nm,
-        **colour,
-        **kwargs,
-    )
-
-
-def temporal_to_config(model: TemporalGlare) -> dict[str, Any]:
-    """The config of a built temporal model, every choice explicit (inverse of the reader).
-
-    ``temporal_from_config(temporal_to_config(m))`` rebuilds the same model (same key,
-    sampling, dynamics and eye).
-    """
-    from invglare.aperture.eye import eye_to_config
-
-    if not isinstance(model, TemporalGlare):
-        raise ConfigError(f"temporal_to_config needs a TemporalGlare, got {type(model).__name__}")
-    prop, spec = model.propagator, model.spectrum
-    table: dict[str, Any] = {
-        "kind": "temporal",
-        "focal_length_mm": float(prop.focal_length_mm),
-        "aperture_npix": prop.grid.npix,
-        "window_mm": float(prop.grid.width_mm),
-        "fps": model.fps,
-        "key_data": [int(v) for v in np.asarray(jax.random.key_data(model.key)).ravel()],
-        "field_luminance_cd_m2": float(model.field_luminance_cd_m2),
-        "luminance_scale": float(model.luminance_scale),
-        "brightness": model.brightness,
-        "tonemap": model.tonemap_name,
-        "tonemap_params": dict(model.tonemap_params),
-        "eye": eye_to_config(model.eye),
-        "dynamics": {name: _part_table(getattr(model.dynamics, name)) for name in _DYNAMICS_PARTS},
-    }
-    return {
-        "model": table,
-        "output": {"npix": prop.output.npix},
-        "spectrum": {
-            "wavelengths_nm": [float(w) for w in spec.wavelengths_nm],
-            "spectral": "scaled",
-            "reference_wavelength_nm": spec.reference_wavelength_nm,
-            "illuminant": spec.illuminant,
-            "colourspace": spec.colourspace,
-        },
-    }

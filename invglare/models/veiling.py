@@ -59,6 +59,7 @@ source), treating the GSF as shift-invariant.
 from __future__ import annotations
 
 import math
+from typing import Any, ClassVar
 
 import equinox as eqx
 import jax
@@ -68,7 +69,8 @@ from jaxtyping import Array, ArrayLike, Float
 
 from invglare._core.checks import as_float, choose
 from invglare.errors import ConfigError, PhysicsRangeError
-from invglare.models.veiling_ghosts import GhostSet, LensGhosts, check_light_angle
+from invglare.models.base import AbstractGlareModel, check_light_angle, check_no_state
+from invglare.models.veiling_ghosts import GhostSet, LensGhosts
 from invglare.models.veiling_series import (
     PROFILES,
     WINDOWS,
@@ -78,6 +80,7 @@ from invglare.models.veiling_series import (
     pixel_average_factors,
     sigma_factors,
 )
+from invglare.optics.paraxial import lens_to_table
 
 __all__ = [
     "POSITIVITY",
@@ -89,6 +92,8 @@ __all__ = [
 
 #: How negative lobes of the series are handled.
 POSITIVITY = ("clip", "none")
+#: Radius (deg) of the black spot of the ISO 9358 veiling glare index in file headers.
+VGI_SPOT_RADIUS_DEG = 0.5
 
 
 def _screen_shape(npix) -> tuple[int, int]:
@@ -106,7 +111,7 @@ def _axis_deg(n: int, pixel_scale_deg: float) -> np.ndarray:
     return (np.arange(n) - n // 2) * pixel_scale_deg
 
 
-class VeilingGlare(eqx.Module):
+class VeilingGlare(AbstractGlareModel):
     """Veiling-glare image of a light, from ghosts aggregated as one Fourier series.
 
     Build one with :meth:`build`. Call it with the light's direction to get the
@@ -138,6 +143,8 @@ class VeilingGlare(eqx.Module):
     chunk: int | None = eqx.field(static=True, default=None)
     period_factor: float = eqx.field(static=True, default=2.0)
     light_angle_deg: Float[Array, " 2"] = eqx.field(converter=as_float, default=(0.0, 0.0))
+    centre: ClassVar[str] = "axis"
+    animated: ClassVar[bool] = False
 
     def __check_init__(self):
         if not isinstance(self.ghosts, GhostSet | LensGhosts):
@@ -357,7 +364,7 @@ class VeilingGlare(eqx.Module):
         return _jitted_gsf(self, angle)
 
     def __call__(
-        self, light_angle_deg: Float[ArrayLike, " 2"] | None = None
+        self, light_angle_deg: Float[ArrayLike, " 2"] | None = None, *, state: Any = None
     ) -> Float[Array, "ny nx"]:
         """Veiling-glare image for a light at `light_angle_deg` = (x, y) deg.
 
@@ -376,6 +383,7 @@ class VeilingGlare(eqx.Module):
         """
         angle = self._angle(light_angle_deg)
         check_light_angle(angle)
+        check_no_state(self, state)
         # Validated here, where values are concrete; the work is one compiled program
         # (inlined when the caller is itself jitted).
         return _jitted_image(self, angle)
@@ -425,6 +433,75 @@ class VeilingGlare(eqx.Module):
             field_radius_deg,
             direct_fraction=self.direct_fraction(on_axis),
         )
+
+
+    # ------------------------------------------------------------------ the model interface
+
+    @property
+    def wavelengths_nm(self) -> None:
+        """None: ghosts are drawn without a wavelength."""
+        return None
+
+    @property
+    def shift_invariant(self) -> bool:
+        """False: each light direction has its own ghosts."""
+        return False
+
+    def core_radius_px(self) -> None:
+        return None  # the light's direct image is not drawn
+
+    def header(self) -> dict[str, Any]:
+        return {
+            "psfNormalisation": "fraction of the light's flux per pixel (veiling glare only)",
+            "veilingGlareIndex": float(self.veiling_glare_index(VGI_SPOT_RADIUS_DEG)),
+            "vgiSpotRadiusDeg": VGI_SPOT_RADIUS_DEG,
+        }
+
+    def sized_for(self, others) -> VeilingGlare:
+        return self  # no raster structure
+
+    def to_config(self) -> dict[str, Any]:
+        """The config of this model, every choice explicit (lenses written inline).
+
+        ``build_model(model.to_config())`` rebuilds the same model.
+        """
+        table: dict[str, Any] = {
+            "kind": "veiling",
+            "profile": self.profile,
+            "n_harmonics": self.n_harmonics,
+            "sigma_strength": float(self.sigma_strength),
+            "window": self.window,
+            "positivity": self.positivity,
+            "pixel_average": self.pixel_average,
+            "quadrature_nodes": self.quadrature_nodes,
+            "period_factor": self.period_factor,
+            "light_angle_deg": np.asarray(self.light_angle_deg, dtype=float).tolist(),
+        }
+        source = self.ghosts
+        if isinstance(source, GhostSet):
+            table["ghosts"] = {
+                "position_deg": np.asarray(source.position_deg, dtype=float).tolist(),
+                "radius_deg": np.asarray(source.radius_deg, dtype=float).tolist(),
+                "intensity_per_sr": np.asarray(source.intensity_per_sr, dtype=float).tolist(),
+                "softness_deg": np.asarray(source.softness_deg, dtype=float).tolist(),
+                "ratio": np.asarray(source.ratio, dtype=float).tolist(),
+                "transmission": float(source.transmission),
+            }
+        else:
+            table["lens"] = {
+                "max_reflections": source.max_reflections,
+                "softness_deg": float(source.softness_deg),
+                "min_radius_deg": float(source.min_radius_deg),
+                **lens_to_table(source.lens),
+            }
+        ny, nx = self.npix
+        return {
+            "model": table,
+            "output": {
+                "npix": ny if ny == nx else [ny, nx],
+                "pixel_scale_deg": self.pixel_scale_deg,
+            },
+        }
 
 
 @eqx.filter_jit

@@ -43,24 +43,8 @@ from invglare.errors import ConfigError, PhysicsRangeError
 from invglare.models.veiling_series import PROFILES, profile_area
 from invglare.optics.paraxial import Lens, ghost_paths, ghost_spots
 
-__all__ = ["GhostSet", "LensGhosts", "check_light_angle"]
+__all__ = ["GhostSet", "LensGhosts"]
 
-
-def check_light_angle(light_angle_deg: Array, batched: bool = False) -> None:
-    """Shape ``(2,)`` (or ``(K, 2)``); concrete values finite and within +-90 deg."""
-    expected = "(K, 2)" if batched else "(2,)"
-    arr = light_angle_deg
-    if arr.ndim != (2 if batched else 1) or arr.shape[-1] != 2:
-        raise PhysicsRangeError(
-            f"light_angle_deg must have shape {expected} (x, y angles in deg), got {arr.shape}"
-        )
-    if not is_concrete(arr):
-        return
-    values = np.asarray(arr, dtype=float)
-    if not np.all(np.isfinite(values)) or np.any(np.abs(values) >= 90.0):
-        raise PhysicsRangeError(
-            f"light_angle_deg must be finite and within (-90, 90) deg, got {values.tolist()}"
-        )
 
 
 def _check_ghost_values(ghosts: GhostSet) -> None:

@@ -64,6 +64,7 @@ from __future__ import annotations
 import functools
 import math
 from collections.abc import Sequence
+from typing import Any
 
 import equinox as eqx
 import jax
@@ -647,3 +648,33 @@ def ghost_spots(
     # Areas relative to the direct path's entrance pupil (on axis, where it is exact).
     energy = factor * vignetting * (rho / rho[0]) ** 2
     return centre[1:], radius[1:], energy[1:]
+
+def lens_to_table(lens: Lens) -> dict[str, Any]:
+    """A lens as an inline table (every surface's reflectance explicit).
+
+    ``lens_from_table(lens_to_table(lens)).lens`` rebuilds the same lens.
+    """
+    # Radii from the curvatures in float64, so that they convert back to the same values.
+    curvature = np.asarray(lens.curvature_per_mm, dtype=float)
+    flat = curvature == 0
+    radius = np.where(flat, np.inf, 1.0 / np.where(flat, 1.0, curvature))
+    surfaces = []
+    for i in range(lens.n_surfaces):
+        surface: dict[str, Any] = {
+            "radius_mm": float(radius[i]) if np.isfinite(radius[i]) else 0.0,
+            "thickness_mm": float(lens.thickness_mm[i]),
+            "index": float(lens.index[i]),
+            "semi_aperture_mm": float(lens.semi_aperture_mm[i]),
+            "reflectance": float(lens.reflectance[i]),
+        }
+        if i == lens.stop_index:
+            surface["stop"] = True
+        surfaces.append(surface)
+    table: dict[str, Any] = {
+        "sensor_reflectance": float(lens.sensor_reflectance),
+        "object_index": float(lens.object_index),
+        "surfaces": surfaces,
+    }
+    if lens.name:
+        table = {"name": lens.name, **table}
+    return table

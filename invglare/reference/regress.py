@@ -468,9 +468,8 @@ def compute_case(case: Case, *, x64: bool = False) -> tuple[np.ndarray, Any]:
 
 
 def _header_for(case: Case, model: Any) -> tuple[dict[str, Any], dict[str, Any], list[float]]:
-    from invglare.config.model import model_to_config
 
-    config = model_to_config(model)
+    config = model.to_config()
     attrs: dict[str, Any] = {
         "regressionCase": case.name,
         "regressionDescription": case.description,

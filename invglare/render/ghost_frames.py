@@ -18,8 +18,8 @@ import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float
 
 from invglare.errors import InputDataError
+from invglare.models.base import check_light_angle
 from invglare.models.veiling import VeilingGlare
-from invglare.models.veiling_ghosts import check_light_angle
 from invglare.render.bright import BrightPixels, light_angles_deg
 
 

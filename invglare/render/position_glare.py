@@ -33,7 +33,7 @@ from invglare.render.bright import BrightPixels, light_angles_deg
 from invglare.render.convolve import resample_psf
 
 if TYPE_CHECKING:
-    from invglare.models.kakimoto import KakimotoGlare
+    from invglare.models.base import AbstractGlareModel
 
 __all__ = ["position_psf_bank", "psf_npix_at_scale", "render_position_glare"]
 
@@ -57,7 +57,7 @@ def psf_npix_at_scale(
 
 
 def position_psf_bank(
-    model: KakimotoGlare,
+    model: AbstractGlareModel,
     light_angles_deg: Float[ArrayLike, "K 2"],
     pixel_scale_deg: float,
     npix: int,
@@ -92,7 +92,7 @@ def position_psf_bank(
     if angles.shape[0] == 0:
         raise InputDataError("light_angles_deg is empty: there is no light to give glare")
     check_positive("pixel_scale_deg", pixel_scale_deg, "deg")
-    own_scale = float(model.propagator.output.pixel_scale_deg)
+    own_scale = float(model.pixel_scale_deg)
     batch = max(1, min(int(batch_size), angles.shape[0]))
     scales = (own_scale, float(pixel_scale_deg), int(npix))
     out = []
@@ -116,7 +116,7 @@ def _resampled_batch(model, angles, own_scale: float, scale: float, npix: int):
 
 
 def render_position_glare(
-    model: KakimotoGlare,
+    model: AbstractGlareModel,
     image: Float[ArrayLike, "H W *c"],
     bright: BrightPixels,
     pixel_scale_deg: float,
@@ -152,19 +152,17 @@ def render_position_glare(
     lights = BrightPixels(*(jnp.asarray(f)[valid] for f in bright[:4]), bright.n_above)
     angles = light_angles_deg(lights, tuple(image.shape[:2]), pixel_scale_deg)
     beyond = float(jnp.max(jnp.abs(angles)))
-    if model.masking == "position" and beyond > model.max_light_angle_deg:
+    # A model meant for lights up to some angle (Kakimoto's scrolling obstacle) says so.
+    max_angle = getattr(model, "max_light_angle_deg", math.inf)
+    if not model.shift_invariant and beyond > max_angle:
         log.warning(
             "lights up to %.3g deg from the centre, beyond the model's max_light_angle_deg = %.3g: "
             "their obstacle may slide out of the window (raise max_light_angle_deg)",
             beyond,
-            model.max_light_angle_deg,
+            max_angle,
         )
-    npix = psf_npix_at_scale(
-        model.propagator.output.npix,
-        float(model.propagator.output.pixel_scale_deg),
-        pixel_scale_deg,
-        max_npix,
-    )
+    own_npix = jax.eval_shape(lambda m: m(), model).shape[0]
+    npix = psf_npix_at_scale(own_npix, float(model.pixel_scale_deg), pixel_scale_deg, max_npix)
     bank = position_psf_bank(model, angles, pixel_scale_deg, npix, batch_size, progress)
     if image.ndim == 2 and bank.ndim == 4:
         raise InputDataError("the image is monochrome (Y) but the model's PSF is RGB")

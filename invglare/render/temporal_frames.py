@@ -56,8 +56,10 @@ OUTPUTS = ("display", "linear")
 
 
 def _check_model(model: TemporalGlare) -> None:
-    if not isinstance(model, TemporalGlare):
-        raise ConfigError(f"expected a TemporalGlare model, got {type(model).__name__}")
+    if not model.animated:
+        raise ConfigError(
+            f"expected an animated model (e.g. a TemporalGlare), got {type(model).__name__}"
+        )
 
 
 def frame_psf_npix(model: TemporalGlare, image_scale_deg: float | None, size: int) -> int | None:

@@ -1,0 +1,92 @@
+"""Choices every raster model makes the same way: its propagator and its central spot."""
+
+from __future__ import annotations
+
+import math
+
+import jax.numpy as jnp
+from jaxtyping import Array, Float
+
+from invglare._core.grids import AngularGrid, ApertureGrid
+from invglare.errors import ConfigError, PhysicsRangeError
+from invglare.optics.propagator import AbstractPropagator, make_propagator
+from invglare.optics.spectral import Spectrum
+
+#: First zero of the Airy pattern, in units of wavelength / diameter (rad).
+AIRY_FIRST_ZERO = 1.2196698912665045
+
+
+def default_window_mm(extent_mm: float, aperture_npix: int) -> float:
+    """An aperture window holding `extent_mm` with two empty pixels on each side."""
+    return extent_mm * aperture_npix / (aperture_npix - 4)
+
+
+def build_propagator(
+    extent_mm: float,
+    spectrum: Spectrum,
+    *,
+    focal_length_mm: float,
+    npix: int,
+    pixel_scale_deg: float | None,
+    aperture_npix: int,
+    window_mm: float | None,
+    propagation: str,
+    method: str,
+) -> AbstractPropagator:
+    """A propagator whose window holds an aperture of `extent_mm` and suits the spectrum."""
+    if isinstance(aperture_npix, bool) or not isinstance(aperture_npix, int) or aperture_npix < 8:
+        raise PhysicsRangeError(f"aperture_npix must be an integer >= 8, got {aperture_npix}")
+    if window_mm is None:
+        window_mm = default_window_mm(extent_mm, aperture_npix)
+    if extent_mm > window_mm * (1 + 1e-6):
+        raise PhysicsRangeError(
+            f"the aperture ({extent_mm:g} mm across) does not fit in window_mm = {window_mm:g}"
+        )
+    computed = spectrum.computed_wavelengths_nm
+    if method == "fft" and spectrum.is_spectral and spectrum.spectral == "exact":
+        raise ConfigError(
+            "a spectral PSF on the FFT path needs spectral = 'scaled'; for exact "
+            "per-wavelength transforms set pixel_scale_deg and method = 'mft'"
+        )
+    propagator = make_propagator(
+        window_mm=window_mm,
+        focal_length_mm=focal_length_mm,
+        fft_wavelength_nm=computed[0],
+        shortest_wavelength_nm=min(computed),
+        npix=npix,
+        pixel_scale_deg=pixel_scale_deg,
+        aperture_npix=aperture_npix,
+        propagation=propagation,
+        method=method,
+    )
+    if propagator.method == "fft" and len(computed) > 1:
+        # "auto" chose the FFT for the first wavelength; the others need other scales.
+        return build_propagator(
+            extent_mm,
+            spectrum,
+            focal_length_mm=focal_length_mm,
+            npix=npix,
+            pixel_scale_deg=float(propagator.output.pixel_scale_deg),
+            aperture_npix=aperture_npix,
+            window_mm=window_mm,
+            propagation=propagation,
+            method="mft",
+        )
+    return propagator
+
+
+def central_spot_radius_px(
+    transmission: Float[Array, "n n"],
+    grid: ApertureGrid,
+    longest_wavelength_nm: Float[Array, ""] | float,
+    output: AngularGrid,
+) -> Float[Array, ""]:
+    """First Airy zero (output pixels) of a disk with the aperture's transmitting area.
+
+    ``1.2197 * lambda / D_eq`` with ``D_eq`` the diameter of the disk of area
+    ``sum(t) * pitch²``, divided by the output pixel scale.
+    """
+    area_mm2 = jnp.sum(transmission) * grid.pitch_mm**2
+    d_eq_mm = 2.0 * jnp.sqrt(area_mm2 / math.pi)
+    lam_mm = jnp.asarray(longest_wavelength_nm) * 1e-6
+    return AIRY_FIRST_ZERO * lam_mm / d_eq_mm / output.pixel_scale_rad
