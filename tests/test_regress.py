@@ -16,11 +16,7 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
-from invglare.cli import app
-from invglare.config.model import model_to_config
-from invglare.errors import ConfigError, InputDataError, PhysicsRangeError
-from invglare.files.exr import read_exr, write_exr
-from invglare.reference.cie_fit import (
+from invglare.cie_study.fit import (
     CieFitSetup,
     Population,
     RadialBins,
@@ -32,7 +28,11 @@ from invglare.reference.cie_fit import (
     parse_cie_spec,
     write_cie_report,
 )
-from invglare.reference.regress import (
+from invglare.cli import app
+from invglare.config.model import model_to_config
+from invglare.errors import ConfigError, InputDataError, PhysicsRangeError
+from invglare.files.exr import read_exr, write_exr
+from invglare.regress.run import (
     CASES,
     DEFAULT_TOLERANCE,
     Case,

@@ -3,7 +3,7 @@
 ``invglare fit`` reads a config with a ``[reference]`` table through
 :func:`load_reference_fit` (a config with ``[target]`` is a photo fit, see
 :mod:`invglare.config.fit`). The eye model's radially averaged GSF is fitted to the
-reference over a range of angles, in log units (:mod:`invglare.reference.cie_fit` says
+reference over a range of angles, in log units (:mod:`invglare.cie_study.fit` says
 why and with which eye). Relative paths are relative to the config file.
 
 ```toml
@@ -63,11 +63,7 @@ from typing import Any
 import numpy as np
 
 from invglare.aperture.eye import REGIONS
-from invglare.config.fit import read_fit_section
-from invglare.config.section import Section, check_sections
-from invglare.errors import ConfigError, InputDataError, PhysicsRangeError
-from invglare.files.toml import load_toml
-from invglare.reference.cie_fit import (
+from invglare.cie_study.fit import (
     CieFitResult,
     CieFitSetup,
     Population,
@@ -76,6 +72,10 @@ from invglare.reference.cie_fit import (
     fit_cie,
     fit_radial_gsf,
 )
+from invglare.config.fit import read_fit_section
+from invglare.config.section import Section, check_sections
+from invglare.errors import ConfigError, InputDataError, PhysicsRangeError
+from invglare.files.toml import load_toml
 from invglare.reference.profiles import RadialTable, ReferenceImage, load_reference_psf
 
 SECTIONS = ("fit", "reference", "eye", "population", "range", "solver")
