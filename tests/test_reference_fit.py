@@ -11,8 +11,8 @@ import OpenEXR
 import pytest
 from typer.testing import CliRunner
 
+from invglare.cie_study import build_fit_model, photopic_psf
 from invglare.cie_study.config import load_reference_fit
-from invglare.cie_study.fit import build_fit_model, photopic_psf
 from invglare.cli import app
 from invglare.errors import ConfigError, InputDataError, PhysicsRangeError
 from invglare.files.exr import write_exr
@@ -86,7 +86,7 @@ def test_a_gsf_table_is_averaged_over_the_annuli_like_the_model(tmp_path):
         "theta_deg,gsf\n" + "".join(f"{t},{1e3 * t**-2.5}\n" for t in theta)
     )
     ref = load_reference_fit(write_config(tmp_path, 'file = "gsf.csv"'))
-    from invglare.cie_study.fit import RadialBins
+    from invglare.cie_study import RadialBins
 
     s = ref.setup
     bins = RadialBins.build(s.npix, s.pixel_scale_deg, s.theta_min_deg, s.max_angle_deg(), 6)

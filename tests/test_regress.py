@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
-from invglare.cie_study.fit import (
+from invglare.cie_study import (
     CieFitSetup,
     Population,
     RadialBins,
@@ -32,7 +32,7 @@ from invglare.cli import app
 from invglare.config.model import model_to_config
 from invglare.errors import ConfigError, InputDataError, PhysicsRangeError
 from invglare.files.exr import read_exr, write_exr
-from invglare.regress.run import (
+from invglare.regress import (
     CASES,
     DEFAULT_TOLERANCE,
     Case,

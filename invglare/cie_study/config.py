@@ -25,7 +25,7 @@ npix = 108
 pixel_scale_deg = 0.02
 seed = 0                             # the particles' random draw
 
-[[population]]                       # the fitted particles (default: cie_fit's two)
+[[population]]                       # the fitted particles (default: the two of setup.py)
 region = "cornea"                    # cornea, lens_nucleus or vitreous
 count_max = 3000                     # pool size and the count's upper bound
 count_init = 800.5                   # not an integer: a relaxed count has no slope there
@@ -63,15 +63,9 @@ from typing import Any
 import numpy as np
 
 from invglare.aperture.eye import REGIONS
-from invglare.cie_study.fit import (
-    CieFitResult,
-    CieFitSetup,
-    Population,
-    RadialBins,
-    annulus_mean,
-    fit_cie,
-    fit_radial_gsf,
-)
+from invglare.cie_study.annuli import RadialBins, annulus_mean
+from invglare.cie_study.fit import CieFitResult, fit_cie, fit_radial_gsf
+from invglare.cie_study.setup import CieFitSetup, Population
 from invglare.config.fit import read_fit_section
 from invglare.config.section import Section, check_sections
 from invglare.errors import ConfigError, InputDataError, PhysicsRangeError

@@ -424,7 +424,7 @@ def run_reference_fit(
 ) -> Path:
     """Fit the eye's radial GSF to a reference (``[reference]``); write its report folder."""
     from invglare.cie_study.config import load_reference_fit
-    from invglare.cie_study.fit import write_gsf_report
+    from invglare.cie_study.report import write_gsf_report
 
     t0 = time.perf_counter()
     ref = load_reference_fit(config, out_dir=out_dir, n_starts=n_starts, max_steps=max_steps)
