@@ -154,7 +154,7 @@ def test_bad_reference_configs_name_the_problem(tmp_path, reference, extra, erro
         load_reference_fit(write_config(tmp_path, reference, extra))
 
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 
 
 def test_committed_cie_fits_cover_every_age_and_pigmentation_within_the_stated_residual():
