@@ -328,8 +328,8 @@ def run_fit(
     """Run the fit a config describes and write its report. **Returns:** the report folder."""
     import jax
 
+    from invglare.cie_study.config import is_reference_fit
     from invglare.config.fit import load_fit
-    from invglare.config.reference_fit import is_reference_fit
     from invglare.files.toml import load_toml
     from invglare.fit.report import ReportInfo, write_report
 
@@ -423,8 +423,8 @@ def run_reference_fit(
     progress: bool = True,
 ) -> Path:
     """Fit the eye's radial GSF to a reference (``[reference]``); write its report folder."""
-    from invglare.config.reference_fit import load_reference_fit
-    from invglare.reference.cie_fit import write_gsf_report
+    from invglare.cie_study.config import load_reference_fit
+    from invglare.cie_study.report import write_gsf_report
 
     t0 = time.perf_counter()
     ref = load_reference_fit(config, out_dir=out_dir, n_starts=n_starts, max_steps=max_steps)

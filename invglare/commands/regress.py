@@ -25,7 +25,7 @@ def run_regress(
     Raises `ConfigError` for `--reason` without `--update` (or the reverse) and for
     unknown case names.
     """
-    from invglare.reference.regress import (
+    from invglare.regress import (
         CASES,
         run_suite,
         select_cases,
@@ -92,7 +92,7 @@ def run_regress(
 
 def run_cie(specs: list[str], out_dir: Path) -> None:
     """Fit the eye model to the CIE GSF for each ``AGE,PIGMENT`` and write reports/cie/."""
-    from invglare.reference.cie_fit import CieFitSetup, fit_cie, parse_cie_spec, write_cie_report
+    from invglare.cie_study import CieFitSetup, fit_cie, parse_cie_spec, write_cie_report
 
     # Every spec is checked before the first (minutes-long) fit starts.
     pairs = [parse_cie_spec(s) for s in specs]

@@ -60,7 +60,7 @@ SAMPLE_DEFAULTS: dict[str, Any] = {
 
 def read_sample_section(config_path: Path) -> dict[str, Any]:
     """The ``[sample]`` table of a fit config, checked, with defaults filled in."""
-    from invglare.config.reference_fit import is_reference_fit
+    from invglare.cie_study.config import is_reference_fit
     from invglare.config.section import Section
     from invglare.files.toml import load_toml
     from invglare.fit.sample import LIKELIHOODS, parse_moves

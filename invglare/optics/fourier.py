@@ -38,18 +38,6 @@ def centred_fft2(field: Inexact[Array, "m m"]) -> Complex[Array, "m m"]:
     return jnp.fft.fftshift(jnp.fft.fft2(jnp.fft.ifftshift(field, axes=(-2, -1))), axes=(-2, -1))
 
 
-def centred_ifft2(spectrum: Complex[Array, "m m"]) -> Complex[Array, "m m"]:
-    """Inverse of :func:`centred_fft2`."""
-    return jnp.fft.fftshift(
-        jnp.fft.ifft2(jnp.fft.ifftshift(spectrum, axes=(-2, -1))), axes=(-2, -1)
-    )
-
-
-def fft_frequencies_per_mm(m: int, pitch_mm) -> Float[Array, " m"]:
-    """Spatial frequencies (cycles/mm) of the centred DFT of ``m`` samples of pitch ``pitch_mm``."""
-    return (jnp.arange(m) - m // 2) / (m * pitch_mm)
-
-
 def dft_matrix(
     coords_mm: Float[Array, " n_in"], freqs_per_mm: Float[Array, " n_out"]
 ) -> Complex[Array, "n_out n_in"]:

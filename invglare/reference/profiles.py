@@ -569,32 +569,42 @@ def load_reference_psf(path: str | os.PathLike[str]) -> ReferenceImage | RadialT
     src = Path(path)
     suffix = src.suffix.lower()
     if suffix == ".exr":
-        from invglare.files.exr import read_exr
+        return _read_reference_image(src)
+    if suffix in TABLE_SUFFIXES:
+        return _read_reference_table(src)
+    raise InputDataError(
+        f"{src}: unknown reference PSF format {suffix or '(no suffix)'!r}; expected .exr "
+        f"(2-D) or one of {', '.join(TABLE_SUFFIXES)} (1-D table of theta_deg, value)"
+    )
 
-        image = read_exr(src)
-        if image.pixel_scale_deg is None:
-            raise InputDataError(
-                f"{src}: the EXR header has no pixelScaleDeg attribute; a 2-D reference PSF "
-                "needs its pixel scale in degrees per pixel (write it with "
-                "invglare.files.write_exr(..., pixel_scale_deg=...))"
-            )
-        return ReferenceImage(
-            psf=image.data,
-            pixel_scale_deg=float(image.pixel_scale_deg),
-            path=src,
-            channels=image.channels,
-            wavelengths_nm=image.wavelengths_nm,
-            config=image.config,
-        )
-    if suffix not in TABLE_SUFFIXES:
+
+def _read_reference_image(src: Path) -> ReferenceImage:
+    """A 2-D reference from an EXR (`read_exr` names a missing or broken file)."""
+    from invglare.files.exr import read_exr
+
+    image = read_exr(src)
+    if image.pixel_scale_deg is None:
         raise InputDataError(
-            f"{src}: unknown reference PSF format {suffix or '(no suffix)'!r}; expected .exr "
-            f"(2-D) or one of {', '.join(TABLE_SUFFIXES)} (1-D table of theta_deg, value)"
+            f"{src}: the EXR header has no pixelScaleDeg attribute; a 2-D reference PSF "
+            "needs its pixel scale in degrees per pixel (write it with "
+            "invglare.files.write_exr(..., pixel_scale_deg=...))"
         )
-    if not src.is_file():
-        raise InputDataError(f"reference PSF file not found: {src}")
+    return ReferenceImage(
+        psf=image.data,
+        pixel_scale_deg=float(image.pixel_scale_deg),
+        path=src,
+        channels=image.channels,
+        wavelengths_nm=image.wavelengths_nm,
+        config=image.config,
+    )
+
+
+def _read_reference_table(src: Path) -> RadialTable:
+    """A 1-D reference from a text table; a missing file or a folder is "not found"."""
     try:
         text = src.read_text(encoding="utf-8")
+    except (FileNotFoundError, IsADirectoryError, NotADirectoryError):
+        raise InputDataError(f"reference PSF file not found: {src}") from None
     except (OSError, UnicodeDecodeError) as e:
         raise InputDataError(f"{src}: cannot read the table ({e})") from e
     theta, values = _parse_table_text(src, text)

@@ -3,7 +3,7 @@
 ``invglare fit`` reads a config with a ``[reference]`` table through
 :func:`load_reference_fit` (a config with ``[target]`` is a photo fit, see
 :mod:`invglare.config.fit`). The eye model's radially averaged GSF is fitted to the
-reference over a range of angles, in log units (:mod:`invglare.reference.cie_fit` says
+reference over a range of angles, in log units (:mod:`invglare.cie_study.fit` says
 why and with which eye). Relative paths are relative to the config file.
 
 ```toml
@@ -25,7 +25,7 @@ npix = 108
 pixel_scale_deg = 0.02
 seed = 0                             # the particles' random draw
 
-[[population]]                       # the fitted particles (default: cie_fit's two)
+[[population]]                       # the fitted particles (default: the two of setup.py)
 region = "cornea"                    # cornea, lens_nucleus or vitreous
 count_max = 3000                     # pool size and the count's upper bound
 count_init = 800.5                   # not an integer: a relaxed count has no slope there
@@ -63,19 +63,13 @@ from typing import Any
 import numpy as np
 
 from invglare.aperture.eye import REGIONS
+from invglare.cie_study.annuli import RadialBins, annulus_mean
+from invglare.cie_study.fit import CieFitResult, fit_cie, fit_radial_gsf
+from invglare.cie_study.setup import CieFitSetup, Population
 from invglare.config.fit import read_fit_section
 from invglare.config.section import Section, check_sections
 from invglare.errors import ConfigError, InputDataError, PhysicsRangeError
 from invglare.files.toml import load_toml
-from invglare.reference.cie_fit import (
-    CieFitResult,
-    CieFitSetup,
-    Population,
-    RadialBins,
-    annulus_mean,
-    fit_cie,
-    fit_radial_gsf,
-)
 from invglare.reference.profiles import RadialTable, ReferenceImage, load_reference_psf
 
 SECTIONS = ("fit", "reference", "eye", "population", "range", "solver")

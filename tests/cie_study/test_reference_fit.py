@@ -11,11 +11,11 @@ import OpenEXR
 import pytest
 from typer.testing import CliRunner
 
+from invglare.cie_study import build_fit_model, photopic_psf
+from invglare.cie_study.config import load_reference_fit
 from invglare.cli import app
-from invglare.config.reference_fit import load_reference_fit
 from invglare.errors import ConfigError, InputDataError, PhysicsRangeError
 from invglare.files.exr import write_exr
-from invglare.reference.cie_fit import build_fit_model, photopic_psf
 
 runner = CliRunner()
 
@@ -86,7 +86,7 @@ def test_a_gsf_table_is_averaged_over_the_annuli_like_the_model(tmp_path):
         "theta_deg,gsf\n" + "".join(f"{t},{1e3 * t**-2.5}\n" for t in theta)
     )
     ref = load_reference_fit(write_config(tmp_path, 'file = "gsf.csv"'))
-    from invglare.reference.cie_fit import RadialBins
+    from invglare.cie_study import RadialBins
 
     s = ref.setup
     bins = RadialBins.build(s.npix, s.pixel_scale_deg, s.theta_min_deg, s.max_angle_deg(), 6)
@@ -154,7 +154,7 @@ def test_bad_reference_configs_name_the_problem(tmp_path, reference, extra, erro
         load_reference_fit(write_config(tmp_path, reference, extra))
 
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 
 
 def test_committed_cie_fits_cover_every_age_and_pigmentation_within_the_stated_residual():

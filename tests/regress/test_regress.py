@@ -1,37 +1,22 @@
-"""Golden regression (`invglare regress`) and the regression fit of the eye to the CIE GSF.
+"""Golden regression (`invglare regress`, `invglare.regress`).
 
 The whole golden suite runs once (a module fixture, about a minute of CPU, mostly XLA
 compilation); the perturbation, CLI and update tests reuse its compiled programs or the
-cheapest case. The CIE tests use a
-tiny setup (a 96-sample pupil, 36² output pixels) that compiles once for all of them.
+cheapest case.
 """
 
-import json
 import math
 import shutil
 from pathlib import Path
 
-import jax
 import numpy as np
 import pytest
 from typer.testing import CliRunner
 
 from invglare.cli import app
-from invglare.errors import ConfigError, InputDataError, PhysicsRangeError
+from invglare.errors import ConfigError, InputDataError
 from invglare.files.exr import read_exr, write_exr
-from invglare.reference.cie_fit import (
-    CieFitSetup,
-    Population,
-    RadialBins,
-    build_fit_model,
-    cie_target,
-    fit_cie,
-    fit_radial_gsf,
-    model_gsf,
-    parse_cie_spec,
-    write_cie_report,
-)
-from invglare.reference.regress import (
+from invglare.regress import (
     CASES,
     DEFAULT_TOLERANCE,
     Case,
@@ -45,7 +30,7 @@ from invglare.reference.regress import (
     write_report,
 )
 
-GOLDEN = Path(__file__).resolve().parent / "golden"
+GOLDEN = Path(__file__).resolve().parents[1] / "golden"
 runner = CliRunner()
 CASE = {c.name: c for c in CASES}
 
@@ -280,90 +265,3 @@ def test_update_rewrites_and_logs_the_change(golden_copy, tmp_path):
         "Unchanged (bit-identical, not rewritten): aperture_fft_mono"
         in (golden_copy / "CHANGES.md").read_text()
     )
-
-
-# ------------------------------------------------------------------------------ CIE fits
-
-TINY = CieFitSetup(
-    populations=(Population("cornea", 400, 150.5, 0.02, 0.1, 0.045, region_radius_mm=1.6),),
-    aperture_npix=96,
-    npix=36,
-    pixel_scale_deg=0.02,
-    n_bins=6,
-    n_starts=3,
-    max_steps=40,
-)
-TRUTH = {"aperture.particles[0].count": 100.4, "aperture.particles[0].radius_mean_mm": 0.062}
-
-
-def test_fit_recovers_a_synthetic_eye():
-    with jax.enable_x64(True):
-        model, space = build_fit_model(TINY)
-        bins = RadialBins.build(
-            TINY.npix, TINY.pixel_scale_deg, TINY.theta_min_deg, TINY.max_angle_deg(), TINY.n_bins
-        )
-        target = np.asarray(model_gsf(space.apply(model, space.values_from(TRUTH)), bins))
-    result = fit_radial_gsf(target, TINY, label="recovery")
-    for path, value in TRUTH.items():
-        assert result.values[path] == pytest.approx(value, rel=0.02), path
-    assert result.rms_log10 < 0.01
-    # The first start is 50 % off in count and 27 % in radius.
-    assert result.initial_gsf.shape == target.shape
-    assert np.max(np.abs(np.log10(result.initial_gsf / target))) > 0.1
-
-
-def test_cie_fit_runs_and_reports(tmp_path):
-    result = fit_cie(25.0, 0.5, TINY)
-    assert result.theta_deg[0] == pytest.approx(0.11, abs=0.01)
-    assert result.theta_deg[-1] < TINY.max_angle_deg() < TINY.alias_free_deg()
-    assert np.all(np.isfinite(result.residual_log10))
-    # The residual is the log ratio of the model's GSF to the CIE target.
-    np.testing.assert_allclose(
-        result.residual_log10, np.log10(result.model_gsf / result.target_gsf), atol=1e-9
-    )
-    assert result.rms_log10 < 0.5
-    assert 0.0 < result.energy_beyond < 1.0
-    path = write_cie_report([result, result], tmp_path)
-    text = path.read_text()
-    assert "| 25 | 0.5 |" in text and "alias-free" in text
-    assert (path.parent / "cie_A25_p0_5.png").read_bytes()[:4] == b"\x89PNG"
-    assert (path.parent / "cie_all.png").is_file()
-    saved = json.loads((path.parent / "fits.json").read_text())
-    assert saved[0]["values"] == pytest.approx(result.values)
-
-
-def test_cie_target_matches_the_formula_at_pixel_centres():
-    bins = RadialBins.build(36, 0.02, 0.1, 0.34, 6)
-    from invglare.reference.cie import cie_gsf
-
-    values = np.asarray(cie_gsf(bins.pixel_theta_deg.ravel(), 70.0, 1.0, extrapolate=True))
-    for k in (0, 5):
-        pixels = bins.index == k
-        assert cie_target(70.0, 1.0, bins)[k] == pytest.approx(values[pixels].mean(), rel=1e-6)
-
-
-@pytest.mark.parametrize(
-    "spec, error, message",
-    [
-        ("25", ConfigError, "AGE,PIGMENT"),
-        ("25,abc", ConfigError, "AGE,PIGMENT"),
-        ("150,0.5", PhysicsRangeError, "age = 150"),
-        ("25,2", PhysicsRangeError, "pigmentation = 2"),
-    ],
-)
-def test_bad_cie_spec_is_named(spec, error, message):
-    with pytest.raises(error, match=message):
-        parse_cie_spec(spec)
-
-
-def test_bad_cie_setup_and_target():
-    with pytest.raises(PhysicsRangeError, match="theta_max_deg"):
-        CieFitSetup(theta_max_deg=5.0).validate()
-    with pytest.raises(PhysicsRangeError, match="3 pixels"):
-        CieFitSetup(theta_min_deg=0.05).validate()
-    with pytest.raises(ConfigError, match="finite values > 0"):
-        fit_radial_gsf(np.full(TINY.n_bins, np.nan), TINY)
-    with pytest.raises(ConfigError, match="shape"):
-        fit_radial_gsf(np.ones(3), TINY)
-    result = invoke("regress", "--cie", "25;0.5")
-    assert result.exit_code == 2 and "AGE,PIGMENT" in result.output
