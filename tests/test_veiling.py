@@ -18,6 +18,7 @@ from helpers import central_difference, x64
 from scipy.integrate import quad
 from scipy.stats import ncx2
 
+from invglare.config.raster import GridRequest
 from invglare.config.veiling import (
     bundled_lenses,
     lens_from_table,
@@ -656,7 +657,7 @@ def test_config_errors_name_the_problem():
     with pytest.raises(ConfigError, match="monochrome"):
         veiling_from_config({**base, "spectrum": {"wavelengths_nm": 550}})
     with pytest.raises(ConfigError, match="monochrome"):
-        veiling_from_config(base, wavelengths_nm=[550.0])
+        veiling_from_config(base, grid=GridRequest(wavelengths_nm=[550.0]))
     with pytest.raises(ConfigError, match="exactly one"):
         veiling_from_config({**base, "model": {"kind": "veiling"}})
     with pytest.raises(ConfigError, match="no_such_lens"):

@@ -33,9 +33,9 @@ from __future__ import annotations
 import dataclasses
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any, Protocol
+from typing import Any
 
-from invglare.config.raster import read_raster_model
+from invglare.config.raster import GridRequest, read_raster_model
 from invglare.config.section import Section
 from invglare.config.temporal import temporal_from_config
 from invglare.config.veiling import veiling_from_config
@@ -46,20 +46,10 @@ from invglare.models.kakimoto import KakimotoGlare
 from invglare.models.temporal import TemporalGlare
 from invglare.models.veiling import VeilingGlare
 
-
-class ModelReader(Protocol):
-    """A kind's config reader: the parsed TOML (and overrides of its grid) → its model."""
-
-    def __call__(
-        self,
-        config: dict[str, Any],
-        base_dir: str | Path | None = None,
-        *,
-        npix: int | tuple[int, int] | None = None,
-        pixel_scale_deg: float | None = None,
-        wavelengths_nm: Any = None,
-        source: str = "config",
-    ) -> AbstractGlareModel: ...
+#: A kind's config reader: ``read(config, base_dir, grid, source) -> model``, the parsed
+#: TOML, where its relative paths are resolved, what the caller asks of the grid
+#: (:class:`~invglare.config.raster.GridRequest`) and the config's name for messages.
+ModelReader = Callable[[dict[str, Any], Any, GridRequest, str], AbstractGlareModel]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -68,7 +58,7 @@ class ModelKind:
 
     name: str
     model_class: type[AbstractGlareModel]
-    read: Callable[..., AbstractGlareModel]
+    read: ModelReader
 
 
 _KINDS: dict[str, ModelKind] = {}
@@ -150,14 +140,7 @@ def build_model(
     whatever the kind's reader raises for its keys.
     """
     kind = config_kind(config, source)
-    return kind.read(
-        config,
-        base_dir,
-        npix=npix,
-        pixel_scale_deg=pixel_scale_deg,
-        wavelengths_nm=wavelengths_nm,
-        source=source,
-    )
+    return kind.read(config, base_dir, GridRequest(npix, pixel_scale_deg, wavelengths_nm), source)
 
 
 # The built-in kinds: one line each.

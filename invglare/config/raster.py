@@ -61,6 +61,7 @@ model 680/530/460 nm; one wavelength gives a monochrome PSF (what a fit needs).
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 from typing import Any
 
@@ -73,6 +74,24 @@ from invglare.models.aperture_psf import AperturePSF
 from invglare.models.kakimoto import COLOURS, MASKINGS, KakimotoGlare
 from invglare.optics.propagator import METHODS, PROPAGATIONS
 from invglare.optics.spectral import SPECTRAL_METHODS, parse_wavelengths
+
+
+@dataclasses.dataclass(frozen=True)
+class GridRequest:
+    """What a caller asks of a model's grid, over the config's own values (None: keep).
+
+    - `npix`: output size, one integer or ``(ny, nx)`` (a fit asks for its photo's).
+    - `pixel_scale_deg`: degrees per output pixel.
+    - `wavelengths_nm`: the wavelengths (a number, a list, or ``"380:770:32"``).
+    """
+
+    npix: int | tuple[int, int] | None = None
+    pixel_scale_deg: float | None = None
+    wavelengths_nm: Any = None
+
+
+#: A request that keeps the config's own grid and wavelengths.
+KEEP_GRID = GridRequest()
 
 #: The kinds this reader builds.
 RASTER_KINDS = ("aperture", "eye", "camera")
@@ -95,19 +114,17 @@ def square_npix(npix: int | tuple[int, int] | None, source: str) -> int | None:
 def read_raster_model(
     config: dict[str, Any],
     base_dir: str | Path | None = None,
-    *,
-    npix: int | tuple[int, int] | None = None,
-    pixel_scale_deg: float | None = None,
-    wavelengths_nm: Any = None,
+    grid: GridRequest = KEEP_GRID,
     source: str = "config",
 ) -> AperturePSF | KakimotoGlare:
     """The model of a config of kind ``"aperture"``, ``"eye"`` or ``"camera"``.
 
-    Keyword arguments override the config's output grid and wavelengths; `npix` may be
+    `grid` overrides the config's output grid and wavelengths; its `npix` may be
     ``(n, n)`` (the grid of a square photo). See the module docstring for the schema.
     """
     check_sections(config, SECTIONS, source)
-    npix = square_npix(npix, source)
+    npix = square_npix(grid.npix, source)
+    pixel_scale_deg, wavelengths_nm = grid.pixel_scale_deg, grid.wavelengths_nm
     model = Section(config["model"], "model")
     kind = model.choice("kind", RASTER_KINDS, "aperture")
     if kind == "aperture":

@@ -9,7 +9,7 @@ import jax
 import numpy as np
 
 from invglare.aperture.eye import eye_from_config
-from invglare.config.raster import square_npix
+from invglare.config.raster import KEEP_GRID, GridRequest, square_npix
 from invglare.config.section import Section, check_sections
 from invglare.dynamics import (
     Accommodation,
@@ -70,10 +70,7 @@ def _read_part(cls: type, table: Any, where: str):
 def temporal_from_config(
     config: dict[str, Any],
     base_dir: Any = None,
-    *,
-    npix: int | tuple[int, int] | None = None,
-    pixel_scale_deg: float | None = None,
-    wavelengths_nm: Any = None,
+    grid: GridRequest = KEEP_GRID,
     source: str = "config",
 ) -> TemporalGlare:
     """Build a :class:`TemporalGlare` from a model config (``model.kind = "temporal"``).
@@ -83,8 +80,8 @@ def temporal_from_config(
     - `config`: the whole parsed TOML (sections ``model``, ``output``, ``spectrum``).
     - `base_dir`: where relative paths would be resolved (the temporal model has none;
       accepted for the common interface).
-    - `npix`, `wavelengths_nm`: overrides of ``output.npix`` and
-      ``spectrum.wavelengths_nm``; `pixel_scale_deg` is refused (the PSF is at the FFT's
+    - `grid`: its `npix` and `wavelengths_nm` override ``output.npix`` and
+      ``spectrum.wavelengths_nm``; a `pixel_scale_deg` is refused (the PSF is at the FFT's
       native scale).
 
     ```toml
@@ -121,7 +118,8 @@ def temporal_from_config(
     """
     del base_dir  # no file references in a temporal model
     check_sections(config, ("model", "output", "spectrum"), source)
-    npix = square_npix(npix, source)
+    npix = square_npix(grid.npix, source)
+    pixel_scale_deg, wavelengths_nm = grid.pixel_scale_deg, grid.wavelengths_nm
     model = Section(config.get("model", {}), "model")
     kind = model.get("kind", str, required=True)
     if kind != "temporal":

@@ -71,6 +71,7 @@ from typing import Any
 
 import numpy as np
 
+from invglare.config.raster import KEEP_GRID, GridRequest
 from invglare.config.section import Section
 from invglare.errors import ConfigError, PhysicsRangeError
 from invglare.files.toml import load_toml
@@ -299,10 +300,7 @@ def _lens_ghosts_from_table(table: dict[str, Any], base_dir: str | Path | None) 
 def veiling_from_config(
     config: dict[str, Any],
     base_dir: str | Path | None = None,
-    *,
-    npix: int | tuple[int, int] | None = None,
-    pixel_scale_deg: float | None = None,
-    wavelengths_nm: Any = None,
+    grid: GridRequest = KEEP_GRID,
     source: str = "config",
 ) -> VeilingGlare:
     """Build a :class:`~invglare.models.veiling.VeilingGlare` from a model config.
@@ -312,8 +310,8 @@ def veiling_from_config(
     - `config`: the whole parsed TOML (sections ``[model]`` with ``kind = "veiling"``
       and optionally ``[output]``; see the module docstring).
     - `base_dir`: directory that relative lens paths are resolved against.
-    - `npix`, `pixel_scale_deg`: override ``[output]``.
-    - `wavelengths_nm`: must be ``None``: the veiling model is monochrome.
+    - `grid`: its `npix` and `pixel_scale_deg` override ``[output]``; its
+      `wavelengths_nm` must be ``None``: the veiling model is monochrome.
     - `source`: name of the config in error messages.
 
     **Raises:** `ConfigError` for unknown keys or sections, wrong types, a
@@ -333,7 +331,7 @@ def veiling_from_config(
                 f"{source}: section [{section}] does not apply to a veiling model{hint}; "
                 "valid sections: model, output"
             )
-    if wavelengths_nm is not None:
+    if grid.wavelengths_nm is not None:
         raise ConfigError("the veiling model is monochrome; wavelengths do not apply to it")
     if "model" not in config:
         raise ConfigError(f"{source}: no [model] section")
@@ -376,7 +374,7 @@ def veiling_from_config(
         shape = (shape[0], shape[1])
     return VeilingGlare.build(
         ghosts,
-        npix=shape if npix is None else npix,
-        pixel_scale_deg=scale if pixel_scale_deg is None else pixel_scale_deg,
+        npix=shape if grid.npix is None else grid.npix,
+        pixel_scale_deg=scale if grid.pixel_scale_deg is None else grid.pixel_scale_deg,
         **options,
     )

@@ -21,23 +21,13 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
 from invglare.aperture import Aperture, shape_to_config
-from invglare.models.base import (
-    AbstractGlareModel,
-    broadcast_image,
-    check_no_state,
-    light_angle,
-    light_angles,
-    wavelength_tuple,
-)
-from invglare.models.propagation import build_propagator, central_spot_radius_px
+from invglare.models.base import broadcast_image, check_no_state, light_angle, light_angles
+from invglare.models.raster import AbstractRasterModel, build_propagator, raster_header
 from invglare.optics.propagator import AbstractPropagator
 from invglare.optics.spectral import Spectrum
 
-#: What every PSF of a propagator holds per pixel (for file headers).
-PSF_NORMALISATION = "fraction of the transmitted power per pixel (Y sums to 1 over the full plane)"
 
-
-class AperturePSF(AbstractGlareModel):
+class AperturePSF(AbstractRasterModel):
     """PSF of an aperture for a spectrum, on the propagator's angular output grid.
 
     Build one with :meth:`build`, which picks the sampling and the method. The PSF does
@@ -140,32 +130,14 @@ class AperturePSF(AbstractGlareModel):
         return broadcast_image(self.psf(), light_angles(light_angles_deg).shape[0])
 
     @property
-    def pixel_scale_deg(self):
-        return self.propagator.output.pixel_scale_deg
-
-    @property
-    def wavelengths_nm(self) -> tuple[float, ...]:
-        return wavelength_tuple(self.spectrum.wavelengths_nm)
-
-    @property
     def shift_invariant(self) -> bool:
         return True
 
-    def core_radius_px(self) -> float:
-        return float(
-            central_spot_radius_px(
-                self.transmission(),
-                self.propagator.grid,
-                max(self.wavelengths_nm),
-                self.propagator.output,
-            )
-        )
+    def spot_raster(self) -> Float[Array, "n n"]:
+        return self.transmission()
 
     def header(self) -> dict[str, Any]:
-        return {
-            "psfNormalisation": PSF_NORMALISATION,
-            "propagationMethod": self.propagator.method,
-        }
+        return raster_header(self)
 
     def sized_for(self, others) -> AperturePSF:
         return self  # analytic shapes: no static raster structure to size

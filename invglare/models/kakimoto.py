@@ -74,23 +74,13 @@ from invglare._core.grids import ApertureGrid
 from invglare.aperture.camera import CameraAperture, camera_to_config
 from invglare.aperture.eye import EyeAperture, eye_to_config
 from invglare.errors import ConfigError, PhysicsRangeError
-from invglare.models.aperture_psf import (
-    PSF_NORMALISATION,
-    output_and_spectrum_tables,
-    propagator_table,
-)
-from invglare.models.base import (
-    AbstractGlareModel,
-    check_no_state,
-    light_angle,
-    light_angles,
-    map_lights,
-    wavelength_tuple,
-)
-from invglare.models.propagation import (
+from invglare.models.aperture_psf import output_and_spectrum_tables, propagator_table
+from invglare.models.base import check_no_state, light_angle, light_angles, map_lights
+from invglare.models.raster import (
     AIRY_FIRST_ZERO,
+    AbstractRasterModel,
     build_propagator,
-    central_spot_radius_px,
+    raster_header,
 )
 from invglare.optics.propagator import AbstractPropagator
 from invglare.optics.spectral import DEFAULT_WAVELENGTHS, Spectrum, parse_wavelengths
@@ -134,7 +124,7 @@ class ObstacleAperture(Protocol):
 
 
 
-class KakimotoGlare(AbstractGlareModel):
+class KakimotoGlare(AbstractRasterModel):
     """Glare PSF of an obstacle image masked by a pupil (Kakimoto et al., eq. 3 and 5).
 
     Build one with :meth:`build`, which picks the sampling (the same rules as
@@ -390,26 +380,15 @@ class KakimotoGlare(AbstractGlareModel):
     # ------------------------------------------------------------------ the model interface
 
     @property
-    def pixel_scale_deg(self):
-        return self.propagator.output.pixel_scale_deg
-
-    @property
-    def wavelengths_nm(self) -> tuple[float, ...]:
-        return wavelength_tuple(self.spectrum.wavelengths_nm)
-
-    @property
     def shift_invariant(self) -> bool:
         """Eq. 5 (fixed mask) is shift invariant; eq. 3 (the mask moves) is not."""
         return self.masking == "fixed"
 
-    def core_radius_px(self) -> float:
-        return float(self.central_spot_radius_px())
+    def spot_raster(self) -> Float[Array, "n n"]:
+        return self.aperture.pupil_transmission(self.propagator.grid)
 
     def header(self) -> dict[str, Any]:
-        return {
-            "psfNormalisation": PSF_NORMALISATION,
-            "propagationMethod": self.propagator.method,
-        }
+        return raster_header(self)
 
     def sized_for(self, others: Sequence[KakimotoGlare]) -> KakimotoGlare:
         """The eye's stamp windows sized for this model and `others` (no headroom).
@@ -436,28 +415,6 @@ class KakimotoGlare(AbstractGlareModel):
         return {"model": table, **output_and_spectrum_tables(self.propagator, self.spectrum)}
 
     # ----------------------------------------------------------------------------- helpers
-
-    def central_spot_radius_px(self) -> Float[Array, ""]:
-        """Radius (output pixels) of the central spot: first Airy zero at the reddest wavelength.
-
-        ``1.2197 * lambda_max / D_eq`` with ``D_eq`` the diameter of the disk with the
-        pupil's area (``sum(P) * pitch²``), divided by the output pixel scale. Meant
-        for splitting off the central spot before tone mapping
-        (:func:`invglare.render.kakimoto_glare_layers`); ``float()`` it there.
-
-        **Example:**
-
-        ```python
-        layers = kakimoto_glare_layers(model(), float(model.central_spot_radius_px()))
-        ```
-        """
-        grid = self.propagator.grid
-        return central_spot_radius_px(
-            self.aperture.pupil_transmission(grid),
-            grid,
-            jnp.max(self.spectrum.wavelengths_nm),
-            self.propagator.output,
-        )
 
     def transmitted_fraction(
         self, light_angle_deg: Float[ArrayLike, " 2"] = (0.0, 0.0)

@@ -65,18 +65,12 @@ from invglare.dynamics.lens import safe_sqrt
 from invglare.dynamics.noise import uniform
 from invglare.dynamics.pupil import MOON_SPENCER_RANGE_MM
 from invglare.errors import ConfigError, PhysicsRangeError
-from invglare.models.aperture_psf import PSF_NORMALISATION
-from invglare.models.base import (
-    AbstractGlareModel,
-    broadcast_image,
-    light_angle,
-    light_angles,
-    wavelength_tuple,
-)
-from invglare.models.propagation import (
+from invglare.models.base import broadcast_image, light_angle, light_angles
+from invglare.models.raster import (
+    AbstractRasterModel,
     build_propagator,
-    central_spot_radius_px,
     default_window_mm,
+    raster_header,
 )
 from invglare.optics.fraunhofer import intensity_fft, transmitted_power
 from invglare.optics.fresnel import fresnel_phase
@@ -120,7 +114,7 @@ class SequenceConstants(eqx.Module):
     depths_mm: tuple  # per moving population: the particles' coordinate along the axis
 
 
-class TemporalGlare(AbstractGlareModel):
+class TemporalGlare(AbstractRasterModel):
     """The temporal glare model: a dynamic eye, its spectral Fresnel PSF, glare on frames.
 
     Build one with :meth:`build` (or from a config with
@@ -355,11 +349,6 @@ class TemporalGlare(AbstractGlareModel):
         return 1.0 / self.fps
 
     @property
-    def pixel_scale_deg(self) -> float:
-        """Angular size of a PSF pixel (deg), the FFT's native scale at the reference."""
-        return self.psf_scale_deg
-
-    @property
     def is_spectral(self) -> bool:
         return self.spectrum.is_spectral
 
@@ -541,32 +530,17 @@ class TemporalGlare(AbstractGlareModel):
         return broadcast_image(self.psf(), light_angles(light_angles_deg).shape[0])
 
     @property
-    def wavelengths_nm(self) -> tuple[float, ...]:
-        return wavelength_tuple(self.spectrum.wavelengths_nm)
-
-    @property
     def shift_invariant(self) -> bool:
         return True
 
-    def core_radius_px(self) -> float:
-        """The resting eye's central spot (its pupil at :attr:`field_luminance_cd_m2`)."""
-        return float(
-            central_spot_radius_px(
-                self.aperture(),
-                self.propagator.grid,
-                max(self.wavelengths_nm),
-                self.propagator.output,
-            )
-        )
+    def spot_raster(self) -> Float[Array, "n n"]:
+        """The resting eye's aperture (its pupil at :attr:`field_luminance_cd_m2`)."""
+        return self.aperture()
 
     def header(self) -> dict[str, Any]:
-        return {
-            "psfNormalisation": PSF_NORMALISATION
-            if self.brightness == "unit"
-            else "transmitted power per pixel (mm^2)",
-            "propagationMethod": "fft",
-            "fps": self.fps,
-        }
+        if self.brightness == "unit":
+            return raster_header(self)
+        return raster_header(self, "transmitted power per pixel (mm^2 of the aperture)")
 
     def sized_for(self, others) -> TemporalGlare:
         return self  # the eye's windows are sized for the dynamics' range when built

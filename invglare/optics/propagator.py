@@ -17,9 +17,9 @@ of :mod:`invglare.optics.fraunhofer`).
 :func:`make_propagator` turns the config's strings into one of them, checking that the
 sampling cannot alias. A propagation that does not start from a raster (an analytic
 transform of vector shapes) or that crosses several planes (a stack of thin layers) is a
-new final subclass: it states its `grid`, `output` and `focal_length_mm` and implements
-``__call__(field, wavelength_nm)``; models call nothing else (see `CONTRIBUTING.md`,
-"Adding a propagation").
+new final subclass: it has the `grid`, `output` and `focal_length_mm` of every
+propagator and implements ``__call__(field, wavelength_nm)``; models call nothing else
+(see `CONTRIBUTING.md`, "Adding a propagation").
 """
 
 # No `from __future__ import annotations` here: equinox reads the AbstractVar and
@@ -58,9 +58,9 @@ class AbstractPropagator(eqx.Module):
     **Class variables:** `propagation` and `method`, the config strings it is written as.
     """
 
-    grid: eqx.AbstractVar[ApertureGrid]
-    output: eqx.AbstractVar[AngularGrid]
-    focal_length_mm: eqx.AbstractVar[Float[Array, ""]]
+    grid: ApertureGrid
+    output: AngularGrid
+    focal_length_mm: Float[Array, ""] = eqx.field(converter=jnp.asarray)
     propagation: eqx.AbstractClassVar[str]
     method: eqx.AbstractClassVar[str]
 
@@ -75,10 +75,7 @@ class FraunhoferFFT(AbstractPropagator):
     """Far field by an FFT of the field zero-padded to `fft_npix`: pixels of
     ``lambda / (fft_npix * pitch)`` rad at the wavelength the model was built for."""
 
-    grid: ApertureGrid
-    output: AngularGrid
-    focal_length_mm: Float[Array, ""] = eqx.field(converter=jnp.asarray)
-    fft_npix: int = eqx.field(static=True, default=0)
+    fft_npix: int = eqx.field(static=True, kw_only=True)
     propagation: ClassVar[str] = "fraunhofer"
     method: ClassVar[str] = "fft"
 
@@ -89,9 +86,6 @@ class FraunhoferFFT(AbstractPropagator):
 class FraunhoferMFT(AbstractPropagator):
     """Far field by matrix Fourier transform: any output pixel scale and field."""
 
-    grid: ApertureGrid
-    output: AngularGrid
-    focal_length_mm: Float[Array, ""] = eqx.field(converter=jnp.asarray)
     propagation: ClassVar[str] = "fraunhofer"
     method: ClassVar[str] = "mft"
 
@@ -102,10 +96,7 @@ class FraunhoferMFT(AbstractPropagator):
 class FresnelFFT(AbstractPropagator):
     """Eq. 3 of Ritschel et al.: the field times ``E = exp(i pi r^2 / (lambda f))``, one FFT."""
 
-    grid: ApertureGrid
-    output: AngularGrid
-    focal_length_mm: Float[Array, ""] = eqx.field(converter=jnp.asarray)
-    fft_npix: int = eqx.field(static=True, default=0)
+    fft_npix: int = eqx.field(static=True, kw_only=True)
     propagation: ClassVar[str] = "fresnel"
     method: ClassVar[str] = "fft"
 
@@ -117,9 +108,6 @@ class FresnelFFT(AbstractPropagator):
 class FresnelMFT(AbstractPropagator):
     """Eq. 3 of Ritschel et al. at any output sampling (matrix Fourier transform)."""
 
-    grid: ApertureGrid
-    output: AngularGrid
-    focal_length_mm: Float[Array, ""] = eqx.field(converter=jnp.asarray)
     propagation: ClassVar[str] = "fresnel"
     method: ClassVar[str] = "mft"
 

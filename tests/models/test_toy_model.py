@@ -20,7 +20,7 @@ from typer.testing import CliRunner
 
 from invglare.cli import app
 from invglare.config.model import build_model, model_kinds, register_model_kind
-from invglare.config.raster import square_npix
+from invglare.config.raster import GridRequest, square_npix
 from invglare.config.section import Section, check_sections
 from invglare.files.exr import read_exr, write_exr
 from invglare.models.base import (
@@ -78,8 +78,7 @@ class ToyGlare(AbstractGlareModel):
         }
 
 
-def read_toy(config, base_dir=None, *, npix=None, pixel_scale_deg=None, wavelengths_nm=None,
-             source="config") -> ToyGlare:  # fmt: skip
+def read_toy(config, base_dir=None, grid=GridRequest(), source="config") -> ToyGlare:
     check_sections(config, ("model", "output"), source)
     model = Section(config["model"], "model")
     model.get("kind", str)
@@ -89,8 +88,9 @@ def read_toy(config, base_dir=None, *, npix=None, pixel_scale_deg=None, waveleng
     n = output.get("npix", int, 64)
     scale = output.get("pixel_scale_deg", float, 0.01)
     output.finish()
-    n = square_npix(npix, source) or n
-    return ToyGlare(sigma, n, scale if pixel_scale_deg is None else float(pixel_scale_deg))
+    n = square_npix(grid.npix, source) or n
+    scale = scale if grid.pixel_scale_deg is None else float(grid.pixel_scale_deg)
+    return ToyGlare(sigma, n, scale)
 
 
 # ---------------------------------------------------------------------------- its registration

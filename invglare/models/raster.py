@@ -1,16 +1,27 @@
-"""Choices every raster model makes the same way: its propagator and its central spot."""
+"""What every raster model shares: its propagator and spectrum, its central spot, its header.
 
-from __future__ import annotations
+A raster model rasterises an aperture on its propagator's grid and propagates it for each
+wavelength of its spectrum (:class:`AbstractRasterModel`); :func:`build_propagator` makes
+the sampling choices they all make the same way.
+"""
 
+# No `from __future__ import annotations` here: equinox reads the AbstractVar
+# annotations as objects when the class is created.
+import abc
 import math
 
+import equinox as eqx
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
 from invglare._core.grids import AngularGrid, ApertureGrid
 from invglare.errors import ConfigError, PhysicsRangeError
+from invglare.models.base import AbstractGlareModel, wavelength_tuple
 from invglare.optics.propagator import AbstractPropagator, make_propagator
 from invglare.optics.spectral import Spectrum
+
+#: What every PSF of a propagator holds per pixel (for file headers).
+PSF_NORMALISATION = "fraction of the transmitted power per pixel (Y sums to 1 over the full plane)"
 
 #: First zero of the Airy pattern, in units of wavelength / diameter (rad).
 AIRY_FIRST_ZERO = 1.2196698912665045
@@ -90,3 +101,49 @@ def central_spot_radius_px(
     d_eq_mm = 2.0 * jnp.sqrt(area_mm2 / math.pi)
     lam_mm = jnp.asarray(longest_wavelength_nm) * 1e-6
     return AIRY_FIRST_ZERO * lam_mm / d_eq_mm / output.pixel_scale_rad
+
+
+class AbstractRasterModel(AbstractGlareModel):
+    """A model that rasterises an aperture on its propagator's grid, for its spectrum.
+
+    Its image is on the propagator's output grid, at the spectrum's wavelengths; its
+    central spot is that of a disk with the area :meth:`spot_raster` transmits.
+    """
+
+    propagator: eqx.AbstractVar[AbstractPropagator]
+    spectrum: eqx.AbstractVar[Spectrum]
+
+    @abc.abstractmethod
+    def spot_raster(self) -> Float[Array, "n n"]:
+        """The transmission whose area sets the central spot (the pupil, at rest)."""
+
+    @property
+    def pixel_scale_deg(self) -> Float[Array, ""]:
+        return self.propagator.output.pixel_scale_deg
+
+    @property
+    def wavelengths_nm(self) -> tuple[float, ...]:
+        return wavelength_tuple(self.spectrum.wavelengths_nm)
+
+    def central_spot_radius_px(self) -> Float[Array, ""]:
+        """Radius (output pixels) of the central spot: first Airy zero at the reddest wavelength.
+
+        ``1.2197 * lambda_max / D_eq`` with ``D_eq`` the diameter of the disk with the
+        area :meth:`spot_raster` transmits (``sum(P) * pitch²``), divided by the output
+        pixel scale. Meant for splitting off the central spot before tone mapping
+        (:func:`invglare.render.kakimoto_glare_layers`); ``float()`` it there.
+        """
+        return central_spot_radius_px(
+            self.spot_raster(),
+            self.propagator.grid,
+            jnp.max(self.spectrum.wavelengths_nm),
+            self.propagator.output,
+        )
+
+    def core_radius_px(self) -> float:
+        return float(self.central_spot_radius_px())
+
+
+def raster_header(model: "AbstractRasterModel", normalisation: str = PSF_NORMALISATION) -> dict:
+    """The file-header values of a raster model's image."""
+    return {"psfNormalisation": normalisation, "propagationMethod": model.propagator.method}
