@@ -174,6 +174,12 @@ def read_free(entries: Sequence[Any], model: Any) -> list[Parameter]:
     return params
 
 
+def _is_wide(model: Any) -> bool:
+    """True when the model holds float64 arrays (built in float64): trace it in float64."""
+    leaves = jax.tree_util.tree_leaves(eqx.filter(model, eqx.is_array))
+    return any(x.dtype in (jnp.float64, jnp.complex128) for x in leaves)
+
+
 def _apply_latent(space: ParameterSpace | None, model: Any, latent: Array) -> Any:
     if space is None:
         return model
@@ -241,7 +247,8 @@ class GlarePSF(torch.nn.Module):
         self.output_scale_deg = (
             self.own_scale_deg if pixel_scale_deg is None else float(pixel_scale_deg)
         )
-        shape = eqx.filter_eval_shape(self.model).shape
+        with _precision(_is_wide(self.model)):
+            shape = eqx.filter_eval_shape(self.model).shape
         self.channels = 1 if len(shape) == 2 else int(shape[-1])
         self._resample = None
         if pixel_scale_deg is not None and not np.isclose(
