@@ -37,7 +37,8 @@ is copied between devices behind the caller's back: move it with ``.cpu()`` expl
 **Safety.** The inputs and outputs are saved for the backward pass, so an in-place change
 of either before ``backward()`` raises PyTorch's usual error instead of giving a silently
 wrong gradient (the JAX residuals may alias both). The backward pass is
-``once_differentiable``: a second-order derivative through the bridge is refused.
+refused under ``create_graph=True``: a second-order derivative through the bridge is an
+error, never a silently missing term.
 """
 
 from __future__ import annotations
@@ -54,7 +55,6 @@ import numpy as np
 import torch
 from jax import dlpack as jax_dlpack
 from jaxtyping import Array
-from torch.autograd.function import once_differentiable
 
 from invglare.errors import ConfigError, InputDataError
 
@@ -417,8 +417,16 @@ class _Bridge(torch.autograd.Function):
         return outs if len(outs) > 1 else outs[0]
 
     @staticmethod
-    @once_differentiable
     def backward(ctx, *grads):
+        if torch.is_grad_enabled():
+            # create_graph=True: a graph of this backward pass would miss the second-order
+            # terms through JAX. (``once_differentiable`` would run it without a graph and
+            # hand back a constant where the incoming gradients need none: a silently
+            # missing term, so the refusal is explicit here.)
+            raise RuntimeError(
+                f"{ctx.bridge.name}: second derivatives (create_graph=True) through a JAX "
+                "function are not supported; compute them in JAX (jax.hessian, jax.jvp)"
+            )
         ctx.saved_tensors  # noqa: B018  (raises if an input or output was modified in place)
         with _precision(ctx.wide):
             cotangents = tuple(to_jax(g) for g in grads)
