@@ -25,7 +25,6 @@ except ImportError as _err:  # pragma: no cover - exercised in a subprocess by t
 
 from invglare.torch._augment import GlareAugment as GlareAugment
 from invglare.torch._augment import GlareDataset as GlareDataset
-from invglare.torch._augment import GlareSample as GlareSample
 from invglare.torch._bridge import JaxFunction as JaxFunction
 from invglare.torch._bridge import from_jax as from_jax
 from invglare.torch._bridge import to_jax as to_jax
@@ -38,7 +37,6 @@ __all__ = [
     "GlareAugment",
     "GlareDataset",
     "GlarePSF",
-    "GlareSample",
     "JaxFunction",
     "from_jax",
     "to_jax",

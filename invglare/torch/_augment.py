@@ -45,7 +45,7 @@ import itertools
 import math
 from collections.abc import Mapping
 from pathlib import Path
-from typing import Any, NamedTuple
+from typing import Any
 
 import numpy as np
 import torch
@@ -57,23 +57,7 @@ from invglare.models.aperture_psf import AperturePSF
 from invglare.models.kakimoto import KakimotoGlare
 from invglare.torch._layers import Glare
 
-__all__ = ["GlareAugment", "GlareDataset", "GlareSample"]
-
-
-class GlareSample(NamedTuple):
-    """What :class:`GlareAugment` returns when asked for more than the glared image.
-
-    - `clean`: the input image (``None`` unless ``return_clean``);
-    - `glared`: the image with glare, same shape and dtype;
-    - `params`: ``{"source": index, "<name>/<path>": value, ...}`` as 0-d tensors, one key
-      for every drawn value of every source, NaN for those of the sources not drawn
-      (so that a ``DataLoader`` can stack them); ``source`` is -1 for a sample left clean.
-      ``None`` unless ``return_params``.
-    """
-
-    clean: torch.Tensor | None
-    glared: torch.Tensor
-    params: dict[str, torch.Tensor] | None
+__all__ = ["GlareAugment", "GlareDataset"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -202,8 +186,12 @@ class GlareAugment:
     - `config`: the config (see the module): a TOML path, or a dict holding ``augment``.
     - `seed`: the seed of every draw.
     - `base_dir`: folder for the relative model paths of a dict config.
-    - `return_clean`, `return_params`: return a :class:`GlareSample` with the clean image
-      and/or the drawn parameters instead of the glared image alone.
+    - `return_clean`, `return_params`: return a dict instead of the glared image alone:
+      ``{"glared": ..., "clean": ..., "params": ...}`` with the keys asked for. `clean` is
+      the input image; `params` is ``{"source": index, "<name>/<path>": value, ...}`` as
+      0-d tensors, one key for every drawn value of every source (NaN for those of the
+      sources not drawn, so that a ``DataLoader`` can stack them; ``source`` is -1 for a
+      sample left clean).
 
     **Call:** ``augment(image, index=None)`` with `image` ``(C, H, W)`` or ``(B, C, H, W)``
     linear HDR values (float32 or float64; a batch draws sample ``index + b`` for its
@@ -213,7 +201,7 @@ class GlareAugment:
 
     ```python
     augment = GlareAugment("examples/torch_augment.toml", seed=0, return_clean=True)
-    clean, glared, _ = augment(hdr_image, index=7)
+    sample = augment(hdr_image, index=7)    # {"glared": ..., "clean": hdr_image}
     ```
     """
 
@@ -366,16 +354,17 @@ class GlareAugment:
             start = int(index)
         draws = [self.draw(start + b) for b in range(len(images))]
         glared = torch.stack([self.render(img, d) for img, d in zip(images, draws, strict=True)])
+        glared = glared if batched else glared[0]
         if not (self.return_clean or self.return_params):
-            return glared if batched else glared[0]
-        params = None
+            return glared
+        out = {"glared": glared}
+        if self.return_clean:
+            out["clean"] = image
         if self.return_params:
             per = [self._params(d) for d in draws]
             params = {k: torch.stack([p[k] for p in per]) for k in self.param_keys}
-            if not batched:
-                params = {k: v[0] for k, v in params.items()}
-        clean = image if self.return_clean else None
-        return GlareSample(clean, glared if batched else glared[0], params)
+            out["params"] = params if batched else {k: v[0] for k, v in params.items()}
+        return out
 
     def __repr__(self) -> str:
         names = ", ".join(s.name for s in self.sources)
