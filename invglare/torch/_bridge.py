@@ -43,8 +43,10 @@ error, never a silently missing term.
 
 from __future__ import annotations
 
+import cmath
 import contextlib
 import functools
+import math
 from collections.abc import Callable, Sequence
 from typing import Any
 
@@ -87,6 +89,31 @@ def _adoptable(t: torch.Tensor) -> bool:
     return True
 
 
+def _dlpack_import():
+    """jaxlib's C++ DLPack import, the one ``jax.dlpack.from_dlpack`` ends in, or None.
+
+    The public function spends 30-70 us of Python per tensor around that call (measured
+    here on a 2-core CPU), a good part of the 0.2 ms the bridge may add to a call. For the
+    dtypes the bridge takes, what it adds (a dtype canonicalisation that is the identity
+    inside the precision scope, a placement on the same device) changes nothing, so the
+    bridge calls the import directly and falls back to the public function where jaxlib
+    has no such entry point (a test checks both give the same array on the same memory).
+    """
+    try:
+        from jax._src.lib import _jax, jaxlib_extension_version
+    except ImportError:  # pragma: no cover - another jaxlib layout
+        return None
+    entry = getattr(_jax, "dlpack_managed_tensor_to_buffer", None)
+    if entry is None or jaxlib_extension_version < 467:  # pragma: no cover - older jaxlib
+        return None
+    cpu = jax.devices("cpu")[0]
+    # 1 is DLPack's kDLCPU device type.
+    return lambda t: entry(t.__dlpack__(), cpu, None, None, 1)
+
+
+_FAST_IMPORT = _dlpack_import()
+
+
 def to_jax(tensor: torch.Tensor) -> Array:
     """A JAX array of a torch tensor, without a copy where the layout allows (see the module).
 
@@ -115,6 +142,8 @@ def to_jax(tensor: torch.Tensor) -> Array:
         t = t.resolve_neg()
     if not _adoptable(t):
         t = t.contiguous()
+    if _FAST_IMPORT is not None and t.device.type == "cpu":
+        return _FAST_IMPORT(t)
     return jax_dlpack.from_dlpack(t)
 
 
@@ -157,7 +186,15 @@ def _check_device(t: torch.Tensor, what: str) -> None:
 
 def check_finite(t: torch.Tensor, what: str) -> None:
     """Raise :class:`~invglare.errors.InputDataError` naming the first NaN or infinite value."""
-    finite = torch.isfinite(t.detach())
+    t = t.detach()
+    # A sum is finite when every term is (a NaN or an infinity reaches it): one pass without
+    # a boolean copy of the tensor. Only a non-finite sum (or an overflow) looks closer.
+    if t.numel() == 0:
+        return
+    total = t.sum().item()
+    if cmath.isfinite(total) if isinstance(total, complex) else math.isfinite(total):
+        return
+    finite = torch.isfinite(t)
     if bool(finite.all()):
         return
     bad = ~finite

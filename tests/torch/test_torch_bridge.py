@@ -302,3 +302,26 @@ def test_non_tensor_and_integer_output_are_refused():
         from_jax(lambda x: jnp.argmax(x))(torch.ones(3))
     with pytest.raises(ConfigError, match="in_axes entries must be 0 or None"):
         from_jax(lambda x: x, in_axes=(1,))
+
+
+@pytest.mark.parametrize(
+    "make",
+    [
+        lambda: torch.randn(3, 4),
+        lambda: torch.randn(5, 4).T,
+        lambda: torch.randn(2, 3, 4, 5).to(memory_format=torch.channels_last),
+        lambda: torch.randn(101)[1:],  # not aligned for XLA: both copy
+        lambda: torch.randn(3, dtype=torch.complex64),
+    ],
+    ids=["contiguous", "transposed", "channels_last", "unaligned", "complex"],
+)
+def test_direct_dlpack_import_equals_jax_from_dlpack(make):
+    # The bridge calls jaxlib's import without jax.dlpack.from_dlpack's Python around it;
+    # if a jaxlib update removed that entry point, the bridge would fall back (slower).
+    assert bridge_module._FAST_IMPORT is not None, "jaxlib's DLPack import entry point moved"
+    x = make()
+    fast, public = bridge_module._FAST_IMPORT(x), jax.dlpack.from_dlpack(x)
+    assert fast.dtype == public.dtype and fast.shape == public.shape
+    np.testing.assert_array_equal(np.asarray(fast), np.asarray(public))
+    shared = public.unsafe_buffer_pointer() == x.data_ptr()
+    assert (fast.unsafe_buffer_pointer() == x.data_ptr()) == shared
