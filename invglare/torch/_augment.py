@@ -24,6 +24,8 @@ PSFs for a ``masking = "position"`` eye).
     "aperture.upper_lashes.count" = { low = 25, high = 45, integer = true }
     [augment.source.choose]       # a key of the *model config* = the values to pick from
     "model.camera.diaphragm.n_blades" = [5, 6, 8]  # (static: one model built per value)
+    [augment.source.set]          # keys of the model config set for this source
+    "model.aperture_npix" = 64    # (e.g. a coarser grid than the config's)
 
 **Reproducibility.** Sample `index` of epoch `epoch` draws from
 ``numpy.random.default_rng([seed, epoch, index])``: the same glare for the same index
@@ -72,7 +74,7 @@ class _Range:
 class _Source:
     name: str
     weight: float
-    model: dict
+    model: dict  # the model config, with the source's fixed `set` keys applied
     base_dir: Path
     draws: tuple[_Range, ...]
     choices: tuple[tuple[str, tuple], ...]
@@ -116,6 +118,7 @@ def _read_source(table: Any, i: int, base: Path) -> _Source:
     weight = _number(sec.get("weight", float, 1.0), f"{where}.weight")
     draw = sec.get("draw", dict, {})
     choose = sec.get("choose", dict, {})
+    fixed = sec.get("set", dict, {})
     sec.finish()
     if weight <= 0:
         raise ConfigError(f"{where}.weight must be > 0, got {weight:g}")
@@ -124,6 +127,9 @@ def _read_source(table: Any, i: int, base: Path) -> _Source:
         config, model_base = load_toml(path), path.parent
     else:
         config, model_base = model, base
+    for key, value in fixed.items():  # fixed changes of the model config (a smaller grid)
+        _config_key(config, key, f"{where}.set")
+        config = _with_key(config, key, value)
     draws = tuple(_read_range(p, v, f"{where}.draw.{p!r}") for p, v in draw.items())
     choices = []
     for key, values in choose.items():
