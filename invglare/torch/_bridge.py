@@ -43,10 +43,8 @@ error, never a silently missing term.
 
 from __future__ import annotations
 
-import cmath
 import contextlib
 import functools
-import math
 from collections.abc import Callable, Sequence
 from typing import Any
 
@@ -186,15 +184,7 @@ def _check_device(t: torch.Tensor, what: str) -> None:
 
 def check_finite(t: torch.Tensor, what: str) -> None:
     """Raise :class:`~invglare.errors.InputDataError` naming the first NaN or infinite value."""
-    t = t.detach()
-    # A sum is finite when every term is (a NaN or an infinity reaches it): one pass without
-    # a boolean copy of the tensor. Only a non-finite sum (or an overflow) looks closer.
-    if t.numel() == 0:
-        return
-    total = t.sum().item()
-    if cmath.isfinite(total) if isinstance(total, complex) else math.isfinite(total):
-        return
-    finite = torch.isfinite(t)
+    finite = torch.isfinite(t.detach())
     if bool(finite.all()):
         return
     bad = ~finite
@@ -247,7 +237,9 @@ class JaxFunction:
       are fixed axis lengths, names must agree across inputs. A mismatch is an
       :class:`~invglare.errors.InputDataError` naming the expected shape.
     - `names`: optional names of the inputs, used in errors.
-    - `check_finite`: refuse NaN or infinite input values (default True).
+    - `check_finite`: refuse NaN or infinite input values (default True). The check is one
+      fused pass inside the compiled call (no extra pass over the tensors in PyTorch); a
+      bad input raises before any result is handed back.
     - `name`: the function's name in errors (default: `fn`'s).
 
     **Returns:** a callable taking torch tensors (float32/float64/complex, on the CPU),
@@ -295,7 +287,7 @@ class JaxFunction:
         #: Traces per program ("forward", "vjp", "backward"): one per shape, dtype and mask.
         self.traces = {"forward": 0, "vjp": 0, "backward": 0}
         self._single: bool | None = None
-        self.jax_forward = jax.jit(self._counted("forward", self._apply))
+        self.jax_forward = jax.jit(self._counted("forward", self._forward))
         self.jax_vjp = jax.jit(self._counted("vjp", self._vjp), static_argnums=0)
         self.jax_backward = jax.jit(self._counted("backward", _pull_back))
 
@@ -330,6 +322,15 @@ class JaxFunction:
         self._single = single
         return outs
 
+    def _finite(self, arrays) -> Array:
+        """Per input, whether every value is finite (one fused pass inside the program)."""
+        if not self.check_finite:
+            return jnp.zeros((0,), bool)
+        return jnp.stack([jnp.all(jnp.isfinite(a)) for a in arrays])
+
+    def _forward(self, leaves: tuple, *arrays):
+        return self._apply(leaves, *arrays), self._finite(arrays)
+
     def _vjp(self, mask: tuple[bool, ...], leaves: tuple, *arrays):
         def of_differentiated(*diff):
             it = iter(diff)
@@ -337,7 +338,17 @@ class JaxFunction:
             return self._apply(leaves, *full)
 
         diff = [a for a, m in zip(arrays, mask, strict=True) if m]
-        return jax.vjp(of_differentiated, *diff)
+        out, vjp = jax.vjp(of_differentiated, *diff)
+        return out, vjp, self._finite(arrays)
+
+    def _refuse_non_finite(self, finite: Array, tensors) -> None:
+        """Raise, naming the first NaN or infinity, unless every input was finite."""
+        flags = np.asarray(finite)
+        if flags.all():
+            return
+        i = int(np.argmin(flags))
+        check_finite(tensors[i], self._what(i))
+        raise InputDataError(f"{self._what(i)} has non-finite (NaN or inf) values")
 
     # ---- validation
 
@@ -389,8 +400,6 @@ class JaxFunction:
                     raise InputDataError(
                         f"{what} has {t.shape[0]} samples along axis 0, the inputs before it {size}"
                     )
-            if self.check_finite:
-                check_finite(t, what)
 
     # ---- calls
 
@@ -420,7 +429,8 @@ class JaxFunction:
             outs = outs if isinstance(outs, tuple) else (outs,)
         else:
             with _precision(wide):
-                out = self.jax_forward(leaves, *(to_jax(t) for t in tensors))
+                out, finite = self.jax_forward(leaves, *(to_jax(t) for t in tensors))
+            self._refuse_non_finite(finite, tensors)
             outs = tuple(to_torch(o) for o in out)
         return outs[0] if self._single else outs
 
@@ -446,7 +456,8 @@ class _Bridge(torch.autograd.Function):
     @staticmethod
     def forward(ctx, bridge: JaxFunction, mask, wide: bool, leaves, *tensors):
         with _precision(wide):
-            out, vjp = bridge.jax_vjp(mask, leaves, *(to_jax(t) for t in tensors))
+            out, vjp, finite = bridge.jax_vjp(mask, leaves, *(to_jax(t) for t in tensors))
+        bridge._refuse_non_finite(finite, tensors)
         outs = tuple(to_torch(o) for o in out)
         ctx.bridge, ctx.mask, ctx.wide, ctx.vjp = bridge, mask, wide, vjp
         # Saved only for PyTorch's version check: the residuals may alias these buffers.
