@@ -26,6 +26,7 @@ from a config with ``dtype=torch.float64`` builds the model itself in float64.
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
@@ -166,8 +167,7 @@ def read_free(entries: Sequence[Any], model: Any) -> list[Parameter]:
                 f"free[{i}] must be a Parameter or a table with path, lower, upper; got {entry!r}"
             )
         if param.path.startswith("model."):
-            param = Parameter(param.path[len("model.") :], param.lower, param.upper,
-                              init=param.init, transform=param.transform)  # fmt: skip
+            param = dataclasses.replace(param, path=param.path[len("model.") :])
         params.append(param)
     if params:
         ParameterSpace(params).check(model)  # lists the valid paths for one that is missing
@@ -440,9 +440,8 @@ class Glare(torch.nn.Module):
             )
         if self.mode == "ghosts" and not isinstance(built, VeilingGlare):
             raise ConfigError(f"mode 'ghosts' is for veiling models, not a {type(built).__name__}")
-        if self.mode == "billboard" and not isinstance(built, KakimotoGlare):
-            if not _is_shift_invariant(built):
-                raise ConfigError(f"mode 'billboard' cannot render a {type(built).__name__}")
+        if self.mode == "billboard" and auto == "ghosts":
+            raise ConfigError(f"mode 'billboard' cannot render a {type(built).__name__}")
         if threshold is not None and not (np.isfinite(threshold) and threshold >= 0):
             raise ConfigError(f"threshold must be a number >= 0, got {threshold!r}")
         if int(max_lights) != max_lights or max_lights < 1:
@@ -472,13 +471,18 @@ class Glare(torch.nn.Module):
         else:
             level = self.threshold
         bright = bright_pixel_list(img, level, min(self.max_lights, h * w))
+        resample = self.psf._resample
         if self.mode == "ghosts":
             out = render_ghosts(model, img, bright, self.pixel_scale_deg)
+        elif _is_shift_invariant(model):
+            # One PSF for every light: the billboards of the bright pixels alone.
+            psf = model() if resample is None else resample_psf(model(), *resample)
+            out = replace_with_billboards(img, bright, psf.astype(img.dtype))
         else:
             angles = light_angles_deg(bright, (h, w), self.pixel_scale_deg).astype(img.dtype)
             bank = model.batch(angles)
-            if self.psf._resample is not None:
-                bank = jax.vmap(lambda p: resample_psf(p, *self.psf._resample))(bank)
+            if resample is not None:
+                bank = jax.vmap(lambda p: resample_psf(p, *resample))(bank)
             out = replace_with_billboards(
                 img, bright, bank.astype(img.dtype), psf_index=jnp.arange(bank.shape[0])
             )

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -14,9 +16,12 @@ from torch_models import disk_config, eye_config
 
 from invglare.errors import ConfigError, InputDataError
 from invglare.fit import Parameter, ParameterSpace
+from invglare.io.config import load_toml
 from invglare.io.model_config import build_model
+from invglare.render.billboard import replace_with_billboards
 from invglare.render.bright import bright_pixel_list
 from invglare.render.convolve import convolve_psf, resample_psf
+from invglare.render.ghost_frames import render_ghosts
 from invglare.render.position_glare import render_position_glare
 from invglare.torch import Glare, GlarePSF
 
@@ -78,16 +83,15 @@ def test_gradcheck_billboards_wrt_images_and_parameters(position_glare):
     assert torch.autograd.gradcheck(out, (latent, images.requires_grad_()), atol=1e-7)
 
 
-def test_psf_gradient_equals_jax_gradient():
-    """d(sum w * PSF)/d(latent) of an eye: the layer against jax.grad of the same function."""
-    psf = GlarePSF(eye_config(), EYE_FREE, dtype=torch.float64)
-    weights = np.random.default_rng(2).random((32, 32))
+def _grad_against_jax(config: dict, free: list[dict], size: int) -> None:
+    psf = GlarePSF(config, free, dtype=torch.float64)
+    weights = np.random.default_rng(2).random((size, size))
     out = psf()
     out[0].backward(torch.tensor(weights))
     with x64():
-        model = build_model(eye_config())
+        model = build_model(config)
         space = ParameterSpace([Parameter(e["path"], e["lower"], e["upper"], init=e["init"])
-                                for e in EYE_FREE])  # fmt: skip
+                                for e in free])  # fmt: skip
 
         def loss(z):
             return jnp.sum(space.apply(model, space.from_latent(z))() * weights)
@@ -96,16 +100,28 @@ def test_psf_gradient_equals_jax_gradient():
     np.testing.assert_allclose(psf.latent.grad.numpy(), np.asarray(grad), rtol=1e-6)
 
 
+def test_psf_gradient_equals_jax_gradient():
+    """d(sum w * PSF)/d(latent): the layer against jax.grad of the same function."""
+    free = [*DIAMETER, {"path": "aperture.shapes[0].center_mm[0]", "lower": -0.4, "upper": 0.4,
+                        "init": 0.1}]  # fmt: skip
+    _grad_against_jax(disk_config(16), free, 16)
+
+
+@pytest.mark.slow
+def test_eye_psf_gradient_equals_jax_gradient():
+    _grad_against_jax(eye_config(), EYE_FREE, 32)
+
+
 # --------------------------------------------------------------------------------------
 # the same numbers as invglare's own functions
 
 
 def test_psf_is_the_models_psf_channels_first():
-    layer = GlarePSF(eye_config(colour="paper_rgb"))
-    model = build_model(eye_config(colour="paper_rgb"))
+    layer = GlarePSF(disk_config(16, rgb=True))
+    model = build_model(disk_config(16, rgb=True))
     with torch.no_grad():
         out = layer()
-    assert out.shape == (3, 32, 32) and layer.channels == 3
+    assert out.shape == (3, 16, 16) and layer.channels == 3
     np.testing.assert_allclose(out.numpy(), np.moveaxis(np.asarray(model()), -1, 0), rtol=1e-6)
 
 
@@ -133,6 +149,7 @@ def test_convolution_equals_convolve_psf():
         np.testing.assert_allclose(out[b].permute(1, 2, 0).numpy(), expected, rtol=1e-5, atol=1e-6)
 
 
+@pytest.mark.slow
 def test_billboards_equal_the_position_render(position_glare):
     images = _two_lights(12, 12, channels=3)
     with torch.no_grad():
@@ -144,6 +161,45 @@ def test_billboards_equal_the_position_render(position_glare):
         expected = render_position_glare(model, image, bright, position_glare.pixel_scale_deg, 33)
     assert position_glare.mode == "billboard"
     np.testing.assert_allclose(out, np.asarray(expected), rtol=1e-6, atol=1e-9)
+
+
+def test_billboards_of_a_shift_invariant_model_use_its_one_psf():
+    glare = Glare(disk_config(16), mode="billboard", max_lights=2, threshold=10.0)
+    images = _two_lights(12, 12, channels=3, dtype=torch.float32)
+    with torch.no_grad():
+        out = glare(images)[0].permute(1, 2, 0).numpy()
+        psf = glare.psf()[0].numpy()
+    image = images[0].permute(1, 2, 0).numpy()
+    expected = replace_with_billboards(image, bright_pixel_list(image, 10.0, 2), psf)
+    np.testing.assert_allclose(out, np.asarray(expected), rtol=1e-6, atol=1e-7)
+
+
+def _veiling_config() -> dict:
+    """The example's five ghosts on a 16 x 16 screen of 1 deg/px (the images' grid)."""
+    config = load_toml(Path(__file__).resolve().parents[2] / "examples" / "veiling_ghosts.toml")
+    config["output"] = {"npix": 16, "pixel_scale_deg": 1.0}
+    config["model"]["n_harmonics"] = 16
+    return config
+
+
+def test_ghosts_equal_render_ghosts_and_gradcheck():
+    free = [{"path": "ghosts.radius_deg[0]", "lower": 0.5, "upper": 4.0}]
+    glare = Glare(_veiling_config(), free, max_lights=2, dtype=torch.float64)
+    assert glare.mode == "ghosts"
+    images = _two_lights(16, 16, channels=3)
+    with torch.no_grad():
+        out = glare(images)[0].permute(1, 2, 0).numpy()
+    with x64():
+        image = jnp.asarray(images[0].permute(1, 2, 0).numpy())
+        bright = bright_pixel_list(image, float(jnp.max(image[..., 1])) / 100.0, 2)
+        expected = render_ghosts(glare.psf.model_at(), image, bright, 1.0)
+    np.testing.assert_allclose(out, np.asarray(expected), rtol=1e-9, atol=1e-12)
+
+    def of(latent, images):
+        return functional_call(glare, {"psf.latent": latent}, (images,))
+
+    latent = glare.psf.latent.detach().clone().requires_grad_()
+    assert torch.autograd.gradcheck(of, (latent, _two_lights(16, 16, 1).requires_grad_()))
 
 
 def test_images_in_any_layout_give_the_same_glare():
@@ -282,7 +338,7 @@ def test_bad_images_are_refused():
     bad[0, 2, 5, 1] = float("nan")
     with pytest.raises(InputDataError, match=r"images\) has 1 non-finite .* \(0, 2, 5, 1\)"):
         glare(bad)
-    rgb = Glare(eye_config(colour="paper_rgb"))
+    rgb = Glare(disk_config(16, rgb=True))
     with pytest.raises(InputDataError, match=r"RGB model takes images with 3 channels"):
         rgb(torch.rand(1, 1, 8, 8))
 

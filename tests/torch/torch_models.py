@@ -66,8 +66,17 @@ def copy_of(config: dict) -> dict:
     return copy.deepcopy(config)
 
 
-def disk_config(npix: int = 32) -> dict:
-    """A 4 mm circular pupil, 17 mm focal length, 550 nm, FFT-native output (fastest)."""
+def disk_config(npix: int = 32, rgb: bool = False) -> dict:
+    """A 4 mm circular pupil, 17 mm focal length, 550 nm, FFT-native output (fastest).
+
+    `rgb`: 450 / 550 / 650 nm integrated to linear RGB (matrix Fourier transforms).
+    """
+    if rgb:
+        config = disk_config(npix)
+        config["model"]["method"] = "mft"
+        config["output"]["pixel_scale_deg"] = 0.0025
+        config["spectrum"] = {"wavelengths_nm": [450.0, 550.0, 650.0]}
+        return config
     return {
         "model": {
             "kind": "aperture",
