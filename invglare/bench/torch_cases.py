@@ -12,7 +12,7 @@ at most 10 % + 0.2 ms over the twin at 256² and 512².
 - ``torch_psf_grad`` / ``torch_psf_grad_jax``: the same forward with ``jax.vjp``'s
   residuals, then the backward pass of a weighted sum (fixed random weights);
 - ``torch_glare`` / ``torch_glare_jax``: :class:`~invglare.torch.Glare` of that model on one
-  N x N RGB image: the PSF, then the padded FFT convolution (two bridged calls);
+  N x N RGB image: the PSF and the padded FFT convolution, one compiled call;
 - ``torch_glare_grad`` / ``torch_glare_grad_jax``: forward and backward of a weighted sum,
   gradients for the image and the diameter.
 
@@ -149,15 +149,10 @@ def _glare_jax(n: int):
     from invglare.torch import to_jax
 
     layer = _glare_layer(n)
-    psf_fn, conv = layer.psf._psf, layer._convolve
+    bridge = layer._psf_convolve
     latent, image = to_jax(layer.psf.latent), jnp.asarray(_image(n))
-    psf_leaves, conv_leaves = psf_fn.consts_for(False), conv.consts_for(False)
-
-    def run():
-        (psf,), _ = psf_fn.jax_forward(psf_leaves, latent)
-        return conv.jax_forward(conv_leaves, image, psf)
-
-    return run
+    leaves = bridge.consts_for(False)
+    return lambda: bridge.jax_forward(leaves, latent, image)
 
 
 def _glare_grad(n: int):
@@ -171,7 +166,7 @@ def _glare_grad(n: int):
     def run():
         layer.psf.latent.grad = image.grad = None
         layer(image).backward(w)
-        return image.grad, layer.psf.latent.grad
+        return layer.psf.latent.grad, image.grad
 
     return run
 
@@ -184,16 +179,14 @@ def _glare_grad_jax(n: int):
     from invglare.torch import to_jax
 
     layer = _glare_layer(n)
-    psf_fn, conv = layer.psf._psf, layer._convolve
+    bridge = layer._psf_convolve
     latent, image = to_jax(layer.psf.latent), jnp.asarray(_image(n))
-    psf_leaves, conv_leaves = psf_fn.consts_for(False), conv.consts_for(False)
+    leaves = bridge.consts_for(False)
     w = jnp.asarray(_weights((1, 3, n, n), 3))
 
     def run():
-        (psf,), psf_vjp, _ = psf_fn.jax_vjp((True,), psf_leaves, latent)
-        _, conv_vjp, _ = conv.jax_vjp((True, True), conv_leaves, image, psf)
-        g_image, g_psf = conv.jax_backward(conv_vjp, (w,))
-        return g_image, psf_fn.jax_backward(psf_vjp, (g_psf,))
+        _, vjp, _ = bridge.jax_vjp((True, True), leaves, latent, image)
+        return bridge.jax_backward(vjp, (w,))
 
     return run
 

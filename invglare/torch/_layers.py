@@ -342,10 +342,13 @@ class GlarePSF(torch.nn.Module):
 
     # ---- forward
 
+    def keeps_psf(self) -> bool:
+        """True when a call now may reuse the last PSF: ``eval()`` mode and no gradient."""
+        return not (self.training or (torch.is_grad_enabled() and self.latent.requires_grad))
+
     def forward(self) -> torch.Tensor:
         latent = self.latent
-        needs_grad = torch.is_grad_enabled() and latent.requires_grad
-        if self.training or needs_grad:
+        if not self.keeps_psf():
             self._cache = None
             return self._psf(latent)
         key = (latent._version, latent.data_ptr(), latent.dtype)
@@ -454,12 +457,21 @@ class Glare(torch.nn.Module):
             names=("images", "psf"), name="Glare",
         )  # fmt: skip
         p = self.psf.latent.shape[0]
+        # PSF and convolution in one compiled call: one DLPack round trip and one autograd
+        # node per batch. vmap leaves the PSF unbatched (it does not depend on the image).
+        self._psf_convolve = JaxFunction(
+            self._psf_convolve_one, consts=built, in_axes=(None, 0),
+            signature=(f"{p}", "B C H W"), names=("latent", "images"), name="Glare",
+        )  # fmt: skip
         self._per_light = JaxFunction(
             self._render_one, consts=built, in_axes=(None, 0), signature=(f"{p}", "B C H W"),
             names=("latent", "images"), name="Glare",
         )  # fmt: skip
 
-    # ---- per-light rendering (JAX)
+    # ---- rendering (JAX)
+
+    def _psf_convolve_one(self, model: Any, latent: Array, image: Float[Array, "c H W"]) -> Array:
+        return _convolve_one(image, self.psf._psf_of(model, latent).astype(image.dtype))
 
     def _render_one(self, model: Any, latent: Array, image: Float[Array, "c H W"]) -> Array:
         model = _apply_latent(self.psf.space, model, latent)
@@ -514,7 +526,8 @@ class Glare(torch.nn.Module):
 
     def forward(self, images: torch.Tensor) -> torch.Tensor:
         self._check_images(images)
-        if self.mode == "convolve":
+        if self.mode == "convolve" and self.psf.keeps_psf():
+            # eval() without a gradient: the kept PSF, only the convolution runs.
             psf = self.psf()
             if psf.dtype != images.dtype and images.dtype in _DTYPES:
                 psf = psf.to(images.dtype)
@@ -522,6 +535,8 @@ class Glare(torch.nn.Module):
         latent = self.psf.latent
         if images.dtype in _DTYPES and latent.dtype != images.dtype:
             latent = latent.to(images.dtype)
+        if self.mode == "convolve":
+            return self._psf_convolve(latent, images)
         return self._per_light(latent, images)
 
     def extra_repr(self) -> str:

@@ -292,6 +292,25 @@ def test_eval_keeps_the_psf_while_the_parameters_are_unchanged():
     assert len(calls) == 5 and not psf.training
 
 
+def test_glare_in_eval_convolves_with_the_kept_psf():
+    glare = Glare(disk_config(16), DIAMETER)
+    images = torch.rand(2, 3, 8, 8)
+    trained = glare(images).detach()  # train mode: PSF and convolution in one call
+    fused, psf_calls = glare._psf_convolve, []
+    glare._psf_convolve = lambda *a: pytest.fail("eval without a gradient recomputed the PSF")
+    inner = glare.psf._psf
+    glare.psf._psf = lambda latent: psf_calls.append(1) or inner(latent)
+    glare.eval()
+    with torch.no_grad():
+        first, second = glare(images), glare(images)
+    assert len(psf_calls) == 1
+    torch.testing.assert_close(first, trained, rtol=1e-5, atol=1e-7)
+    torch.testing.assert_close(second, first, rtol=0, atol=0)
+    glare._psf_convolve = fused
+    glare(images).sum().backward()  # eval with a gradient: the fused call again
+    assert glare.psf.latent.grad is not None
+
+
 # --------------------------------------------------------------------------------------
 # bad input
 
