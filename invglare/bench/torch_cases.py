@@ -54,6 +54,14 @@ def _weights(shape: tuple[int, ...], seed: int) -> np.ndarray:
     return np.random.default_rng(seed).random(shape).astype(np.float32)
 
 
+def _tensor(array: np.ndarray):
+    """A torch-owned copy: numpy's buffers are 16-byte aligned, XLA's CPU wants 64 (JAX
+    would copy them on every call, which a tensor made by torch does not need)."""
+    import torch
+
+    return torch.from_numpy(array).clone()
+
+
 def _psf_layer(n: int):
     from invglare.torch import GlarePSF
 
@@ -89,7 +97,7 @@ def _psf_grad(n: int):
     if torch is None:
         return None
     layer = _psf_layer(n)
-    w = torch.from_numpy(_weights((1, n, n), 1))
+    w = _tensor(_weights((1, n, n), 1))
 
     def run():
         layer.latent.grad = None
@@ -132,7 +140,7 @@ def _glare(n: int):
     torch = _torch()
     if torch is None:
         return None
-    layer, image = _glare_layer(n), torch.from_numpy(_image(n))
+    layer, image = _glare_layer(n), _tensor(_image(n))
 
     def run():
         with torch.no_grad():
@@ -160,8 +168,8 @@ def _glare_grad(n: int):
     if torch is None:
         return None
     layer = _glare_layer(n)
-    image = torch.from_numpy(_image(n)).requires_grad_()
-    w = torch.from_numpy(_weights((1, 3, n, n), 3))
+    image = _tensor(_image(n)).requires_grad_()
+    w = _tensor(_weights((1, 3, n, n), 3))
 
     def run():
         layer.psf.latent.grad = image.grad = None
