@@ -20,7 +20,9 @@ at most 10 % + 0.2 ms over the twin at 256² and 512².
 records into the overhead table. ``python -m invglare.bench.torch_cases`` times every
 pair side by side (calls alternating, so the machine's load falls on both alike) and
 prints that table. torch is imported only inside the cases: importing this module does
-not need it.
+not need it. Run it with ``OMP_WAIT_POLICY=PASSIVE`` on a machine with few cores: PyTorch's
+spinning OpenMP threads otherwise slow XLA's (docs/torch.md, "Threads on a CPU"), which
+is no cost of the bridge.
 """
 
 from __future__ import annotations
