@@ -37,9 +37,9 @@ import jax.numpy as jnp
 import numpy as np
 import torch
 
+from invglare.config.fit import load_fit
 from invglare.fit import Parameter, ParameterSpace
 from invglare.fit.views import ViewContext, build_view
-from invglare.io.fit_config import load_fit
 from invglare.torch import GlarePSF, from_jax, to_jax, to_torch
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -26,7 +26,8 @@ TIERS: tuple[tuple[str, ...], ...] = (
     ("render", "fit", "reference"),
     ("config",),
     ("reports",),
-    ("bench", "regress", "cie_study", "torch"),
+    ("torch",),
+    ("bench", "regress", "cie_study"),
     ("commands",),
     ("cli",),
 )

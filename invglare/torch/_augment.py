@@ -52,11 +52,11 @@ from typing import Any
 import numpy as np
 import torch
 
+from invglare.config.section import Section
 from invglare.errors import ConfigError, InputDataError, PhysicsRangeError
+from invglare.files.toml import load_toml
 from invglare.fit.params import Parameter
-from invglare.io.config import Section, load_toml
-from invglare.models.aperture_psf import AperturePSF
-from invglare.models.kakimoto import KakimotoGlare
+from invglare.models.raster import AbstractRasterModel
 from invglare.torch._layers import Glare
 
 __all__ = ["GlareAugment", "GlareDataset"]
@@ -170,8 +170,9 @@ def _check_window(layer: Glare, source: _Source, choice: tuple) -> None:
     all high) are checked instead, which covers openings that grow or shrink with a value.
     """
     space, model = layer.psf.space, layer.psf.model
-    if not isinstance(model, KakimotoGlare | AperturePSF):
-        return
+    aperture = getattr(model, "aperture", None)
+    if not isinstance(model, AbstractRasterModel) or not hasattr(aperture, "extent_mm"):
+        return  # no raster window to leave
     width = float(model.propagator.grid.width_mm)
     for end in ("low", "high"):
         values = [getattr(r, end) for r in source.draws]

@@ -38,12 +38,10 @@ import numpy as np
 import torch
 from jaxtyping import Array, Float
 
+from invglare.config.model import build_model
 from invglare.errors import ConfigError, InputDataError
+from invglare.files.toml import load_toml
 from invglare.fit.params import Parameter, ParameterSpace, _getter, resolve_path
-from invglare.io.config import load_toml
-from invglare.io.model_config import build_model, model_pixel_scale_deg
-from invglare.models.kakimoto import KakimotoGlare
-from invglare.models.veiling import VeilingGlare
 from invglare.render.billboard import replace_with_billboards
 from invglare.render.bright import bright_pixel_list, light_angles_deg, luminance
 from invglare.render.convolve import convolve_psf, resample_psf
@@ -60,21 +58,14 @@ _DTYPES = (torch.float32, torch.float64)
 
 
 # --------------------------------------------------------------------------------------
-# the model interface this module needs (replaced by the interface's properties)
-
-
-def _is_shift_invariant(model: Any) -> bool:
-    """True when one convolution renders the model (the same PSF for every light)."""
-    if isinstance(model, KakimotoGlare):
-        return model.masking == "fixed"
-    return not isinstance(model, VeilingGlare)
+# how the model interface says a model is rendered
 
 
 def _renderer(model: Any) -> str:
     """The :data:`MODES` entry ``"auto"`` resolves to for `model`."""
-    if _is_shift_invariant(model):
-        return "convolve"
-    return "ghosts" if isinstance(model, VeilingGlare) else "billboard"
+    if model.centre == "axis":
+        return "ghosts"  # a screen image per light (lens ghosts)
+    return "convolve" if model.shift_invariant else "billboard"
 
 
 # --------------------------------------------------------------------------------------
@@ -103,7 +94,7 @@ def load_model(
     - `dtype`: ``torch.float64`` builds the model in float64 (inside a local
       ``jax.enable_x64`` scope); float32 by default.
     - `grid`: ``npix`` / ``pixel_scale_deg`` / ``wavelengths_nm`` overrides of
-      :func:`~invglare.io.model_config.build_model`.
+      :func:`~invglare.config.model.build_model`.
 
     **Raises:** :class:`~invglare.errors.ConfigError` for a missing file or a bad config.
     """
@@ -243,7 +234,7 @@ class GlarePSF(torch.nn.Module):
         self.model = load_model(model, base_dir, dtype=dtype)
         params = read_free(free, self.model)
         self.space = ParameterSpace(params) if params else None
-        self.own_scale_deg = float(model_pixel_scale_deg(self.model))
+        self.own_scale_deg = float(self.model.pixel_scale_deg)
         self.output_scale_deg = (
             self.own_scale_deg if pixel_scale_deg is None else float(pixel_scale_deg)
         )
@@ -256,7 +247,7 @@ class GlarePSF(torch.nn.Module):
         ):
             if not (np.isfinite(self.output_scale_deg) and self.output_scale_deg > 0):
                 raise ConfigError(f"pixel_scale_deg must be > 0, got {pixel_scale_deg!r}")
-            if isinstance(self.model, VeilingGlare) or shape[0] != shape[1]:
+            if self.model.centre == "axis" or shape[0] != shape[1]:
                 raise ConfigError(
                     "a veiling model's image is a screen, not a PSF: build it on the image's "
                     "grid (npix, pixel_scale_deg in its config) instead of resampling it"
@@ -441,8 +432,11 @@ class Glare(torch.nn.Module):
                 f"a {type(built).__name__} gives each light its own glare (not shift-invariant): "
                 f"a convolution cannot render it; use mode = {auto!r}"
             )
-        if self.mode == "ghosts" and not isinstance(built, VeilingGlare):
-            raise ConfigError(f"mode 'ghosts' is for veiling models, not a {type(built).__name__}")
+        if self.mode == "ghosts" and built.centre != "axis":
+            raise ConfigError(
+                f"mode 'ghosts' is for models whose image is the screen (veiling), "
+                f"not a {type(built).__name__}"
+            )
         if self.mode == "billboard" and auto == "ghosts":
             raise ConfigError(f"mode 'billboard' cannot render a {type(built).__name__}")
         if threshold is not None and not (np.isfinite(threshold) and threshold >= 0):
@@ -486,7 +480,7 @@ class Glare(torch.nn.Module):
         resample = self.psf._resample
         if self.mode == "ghosts":
             out = render_ghosts(model, img, bright, self.pixel_scale_deg)
-        elif _is_shift_invariant(model):
+        elif model.shift_invariant:
             # One PSF for every light: the billboards of the bright pixels alone.
             psf = model() if resample is None else resample_psf(model(), *resample)
             out = replace_with_billboards(img, bright, psf.astype(img.dtype))

@@ -23,7 +23,7 @@ def _python(code: str) -> subprocess.CompletedProcess:
     "imports",
     [
         "import invglare",
-        "import invglare.models, invglare.fit, invglare.render, invglare.io.model_config",
+        "import invglare.models, invglare.fit, invglare.render, invglare.config.model",
         "import invglare.bench.torch_cases",  # the bench cases import torch only when run
     ],
 )
@@ -60,8 +60,8 @@ sys.meta_path.insert(0, NoTorch())
 def test_without_torch_the_error_names_the_extra():
     code = _NO_TORCH + (
         "try:\n    import invglare.torch\nexcept ImportError as e:\n    print(e)\n"
-        "from invglare.io.config import load_toml\n"
-        "from invglare.io.model_config import build_model\n"
+        "from invglare.config.section import load_toml\n"
+        "from invglare.config.model import build_model\n"
         f"model = build_model(load_toml({str(ROOT / 'examples' / 'circle.toml')!r}), npix=64)\n"
         "import numpy as np\npsf = np.asarray(model())\n"
         "assert psf.shape == (64, 64) and np.argmax(psf) == 32 * 64 + 32\nprint('core ok')"

@@ -14,10 +14,10 @@ from helpers import x64
 from torch.func import functional_call
 from torch_models import disk_config, eye_config
 
+from invglare.config.model import build_model
 from invglare.errors import ConfigError, InputDataError
+from invglare.files.toml import load_toml
 from invglare.fit import Parameter, ParameterSpace
-from invglare.io.config import load_toml
-from invglare.io.model_config import build_model
 from invglare.render.billboard import replace_with_billboards
 from invglare.render.bright import bright_pixel_list
 from invglare.render.convolve import convolve_psf, resample_psf
