@@ -194,9 +194,9 @@ def describe(
                 else "this kernel's channels are equal, so only its level changes. "
             )
             + "To keep the model's colour and level: Convolve with Normalize Kernel off "
-            f"(exactly `invglare render`), or set the Glare node's Tint to ({rgb}) with "
-            "Strength 1 and take its Glare output (its Image output adds the unspread "
-            "image as well).",
+            f"(exactly `invglare render`), or set the Glare node's Tint to ({rgb}) (linear "
+            "values, typed in; they may exceed 1) with Strength 1 and take its Glare output "
+            "(its Image output adds the unspread image as well).",
         ]
     else:
         frac = ", ".join(f"{v:.4g}" for v in centre)
@@ -215,8 +215,8 @@ def describe(
             "channel's energy (the light that stays focused; the rest scatters), the model's "
             "own core-to-halo ratio. Keep Scatter Dispersion at 1 to use it as is"
             + (
-                "; the channels' energies differ, so an engine that normalises each channel "
-                "removes that tint (Bloom tint can restore it)."
+                f"; the channels' energies differ ({rgb}, header kernelChannelEnergy): "
+                "normalised channel by channel they would lose that tint."
                 if tinted
                 else "."
             ),

@@ -32,8 +32,8 @@ and `nodes/composite/nodes/node_composite_glare.cc` / `node_composite_convolve.c
   its blue becomes neutral). Three ways to keep it: the *Convolve* node with *Normalize
   Kernel* off (the file's absolute values: exactly `invglare render`); or the *Glare*
   node's *Tint* set to the kernel's channel energies (:func:`channel_energy`, printed by
-  the command, all <= 1 so *Strength* stays 1); or a *Mix* (multiply) by that colour after
-  a normalising *Convolve*;
+  the command; a linear colour, whose values may exceed 1 for an RGB PSF, with *Strength*
+  1); or a *Mix* (multiply) by that colour after a normalising *Convolve*;
 - the *Glare* node convolves its *highlights* (each pixel's HSV value minus *Threshold*;
   with Threshold 0 the image itself), at a quarter or half of the resolution unless
   *Quality* is *High* (default *Medium*), and its *Image* output adds the glare to the
