@@ -97,7 +97,9 @@ def unreal_bloom(image: np.ndarray, texture: np.ndarray, size: float, viewport) 
     centre_uv = ((np.arange(n) + 0.5) / n)[n // 2]
     assert centre_uv == 0.5, "Convolution Center (0.5, 0.5) must be a texel's centre"
     texels_per_px = n / (size * min(viewport))
-    assert math.isclose(texels_per_px, 1.0, rel_tol=1e-6), "the test drives the engine at one texel per pixel"
+    assert math.isclose(texels_per_px, 1.0, rel_tol=1e-6), (
+        "the test drives the engine at one texel per pixel"
+    )
     ker = np.asarray(texture, np.float64)
     ker = ker / ker.sum(axis=(0, 1))  # the kernel's total taken as all of the light
     img = np.asarray(image, np.float64)
