@@ -70,8 +70,9 @@ NOTES = (
 def select(patterns: list[str], skip: list[str] | None = None) -> tuple[list[Case], list[str]]:
     """The per-size cases and fit benchmarks to run.
 
-    A case runs when its name contains one of `patterns` (all cases without patterns)
-    and none of `skip`. The floors and :data:`REFERENCES` are never skipped and run
+    A case runs when its name contains one of `patterns` (all cases without patterns,
+    except the peers benchmark, which runs only when a pattern names it) and none of
+    `skip`. The floors and :data:`REFERENCES` are never skipped and run
     whenever a per-size pipeline case does: the ratios need them.
 
     **Raises:** `ConfigError` listing the cases when nothing is left to run.
@@ -86,7 +87,9 @@ def select(patterns: list[str], skip: list[str] | None = None) -> tuple[list[Cas
     # The references every ratio is taken against run with any pipeline.
     always = [c for c in CASES if c.kind == "floor" or c.name in REFERENCES]
     cases = [c for c in CASES if c in pipelines or (pipelines and c in always)]
-    fits = [name for name in (*FIT_CASES, *SAMPLE_CASES, *PEER_CASES) if wanted(name)]
+    fits = [name for name in (*FIT_CASES, *SAMPLE_CASES) if wanted(name)]
+    # The peers (other packages, installed by the bench extra) run only when named.
+    fits += [name for name in PEER_CASES if patterns and wanted(name)]
     if not pipelines and not fits:
         names = ", ".join(
             [c.name for c in CASES] + list(FIT_CASES) + list(SAMPLE_CASES) + list(PEER_CASES)

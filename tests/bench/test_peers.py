@@ -143,6 +143,7 @@ def test_cpu_info_reads_model_and_vector_flags():
 def test_bench_selects_peers_and_writes_its_section():
     cases, fits = runner.select(["peers"])
     assert cases == [] and fits == ["peers"]
+    assert "peers" not in runner.select([])[1]  # not part of a plain `invglare bench`
     record = {
         "kind": "peers",
         "case": "peers",
