@@ -9,7 +9,8 @@ with their matrix Fourier transforms):
   :func:`invglare.reference.closed_forms.polygon_far_field`.
 
 Each code computes the PSF its own documented way (invglare: `AperturePSF` on the FFT path,
-jitted; dLux: `AngularOpticalSystem` with a dynamic aperture, `equinox.filter_jit`; hcipy:
+jitted; dLux: `AngularOpticalSystem` with a dynamic aperture, `equinox.filter_jit`, and,
+as ``dlux_fft``, the same aperture on a bare `Wavefront` padded 4x and FFT'd; hcipy:
 `FraunhoferPropagator` of a 4x supersampled aperture field, the field made once, only the
 propagation timed; poppy: `OpticalSystem.calc_psf` with an MFT detector). Accuracy is
 measured on each code's own output grid (hcipy and invglare put the axis on pixel 256,
@@ -45,7 +46,7 @@ log = logging.getLogger("invglare")
 #: Name of the case group (``invglare bench peers``).
 PEER_CASES = ("peers",)
 #: The codes compared, invglare first (the speed-ups are taken against it).
-CODES = ("invglare", "dlux", "hcipy", "poppy")
+CODES = ("invglare", "dlux", "dlux_fft", "hcipy", "poppy")
 SHAPES = ("airy", "hexagon")
 NPIX = 512
 PUPIL_SAMPLES = 128
@@ -208,7 +209,10 @@ def _invglare(shape: str) -> PeerSetup:
     )
 
 
-def _dlux(shape: str) -> PeerSetup | None:
+def _dlux(shape: str, method: str = "mft") -> PeerSetup | None:
+    """dLux's PSF: ``"mft"`` its optical-system path (`AngularOpticalSystem`, the documented
+    way to ask for an output grid), ``"fft"`` a bare `Wavefront` padded 4x and FFT'd (the
+    same FFT sampling invglare uses)."""
     try:
         import dLux as dl
     except ImportError:
@@ -218,33 +222,42 @@ def _dlux(shape: str) -> PeerSetup | None:
     import jax.numpy as jnp
 
     d_m = DIAMETER_MM * 1e-3
-    arcsec = math.degrees(pixel_scale_rad()) * 3600.0
+    lam_m = WAVELENGTH_NM * 1e-9
     # dLux's polygon has a corner along +x, as the reference.
     aperture = dl.CircularAperture(d_m / 2) if shape == "airy" else dl.RegPolyAperture(6, d_m / 2)
-    system = dl.AngularOpticalSystem(
-        wf_npixels=PUPIL_SAMPLES,
-        diameter=d_m,
-        layers=[("aperture", aperture)],
-        psf_npixels=NPIX,
-        psf_pixel_scale=arcsec,
-    )
-    lam_m = WAVELENGTH_NM * 1e-9
-    forward = eqx.filter_jit(lambda s: s.propagate_mono(lam_m))
-    weights = jnp.asarray(_weights())
     leaf = "radius" if shape == "airy" else "rmax"
+    if method == "mft":
+        system = dl.AngularOpticalSystem(
+            wf_npixels=PUPIL_SAMPLES,
+            diameter=d_m,
+            layers=[("aperture", aperture)],
+            psf_npixels=NPIX,
+            psf_pixel_scale=math.degrees(pixel_scale_rad()) * 3600.0,
+        )
 
-    def loss(size, s):
-        s = eqx.tree_at(lambda s: getattr(s.layers["aperture"], leaf), s, size)
-        return jnp.sum(s.propagate_mono(lam_m) * weights)
+        def psf(size):
+            s = eqx.tree_at(lambda s: getattr(s.layers["aperture"], leaf), system, size)
+            return s.propagate_mono(lam_m)
 
-    grad = eqx.filter_jit(jax.grad(loss))
+        how, centring = "AngularOpticalSystem (MFT)", "corner"
+    else:
+
+        def psf(size):
+            ap = eqx.tree_at(lambda a: getattr(a, leaf), aperture, size)
+            wf = ap.apply(dl.Wavefront(lam_m, PUPIL_SAMPLES, d_m))
+            return wf.propagate_FFT(pad=PX_PER_LAMBDA_OVER_D).psf
+
+        how, centring = "Wavefront + propagate_FFT(pad=4)", "pixel"
+    forward = eqx.filter_jit(psf)
+    weights = jnp.asarray(_weights())
+    grad = eqx.filter_jit(jax.grad(lambda size: jnp.sum(psf(size) * weights)))
     r0 = jnp.float32(d_m / 2)
     return PeerSetup(
-        lambda: forward(system),
-        lambda: grad(r0, system),
-        "corner",
+        lambda: forward(r0),
+        lambda: grad(r0),
+        centring,
         getattr(dl, "__version__", ""),
-        f"AngularOpticalSystem (MFT), equinox.filter_jit; grad: d/d({leaf})",
+        f"{how}, equinox.filter_jit; grad: d/d({leaf})",
     )
 
 
@@ -314,6 +327,7 @@ def _poppy(shape: str) -> PeerSetup | None:
 SETUPS: dict[str, Callable[[str], PeerSetup | None]] = {
     "invglare": _invglare,
     "dlux": _dlux,
+    "dlux_fft": lambda shape: _dlux(shape, "fft"),
     "hcipy": _hcipy,
     "poppy": _poppy,
 }
@@ -475,7 +489,7 @@ def _add_speedups(rows: list[dict]) -> None:
 def _cell(timing: dict | None) -> str:
     if not timing:
         return "n/a"
-    text = f"{timing['median_ms']:.2f} ms ({timing['ratio']:.1f}x)"
+    text = f"{timing['median_ms']:.2f} ms, min {timing['min_ms']:.2f} ({timing['ratio']:.1f}x)"
     if "speedup" in timing:
         text += f", invglare {timing['speedup']:.1f}x faster"
     return text
@@ -485,7 +499,10 @@ def peers_markdown(record: dict) -> list[str]:
     """bench.md's peers section: the setup, the machine and one row per code and shape."""
     cpu = record.get("cpu", {})
     floor_text = "; ".join(
-        f"{shape}: " + ", ".join(f"{k} {v['median_ms']:.3f} ms" for k, v in floors.items())
+        f"{shape}: "
+        + ", ".join(
+            f"{k} {v['median_ms']:.3f} ms, min {v['min_ms']:.3f}" for k, v in floors.items()
+        )
         for shape, floors in record.get("floors", {}).items()
     )
     lines = [
@@ -495,16 +512,17 @@ def peers_markdown(record: dict) -> list[str]:
         f"({', '.join(cpu.get('vector_extensions', [])) or 'no vector flags read'}; "
         f"{cpu.get('logical_cpus')} logical CPUs), JAX {record.get('jax')}; load average "
         f"(1 min) {record.get('load_1m_start')} at the start, {record.get('load_1m_end')} at "
-        "the end (2 cores: above 2, other processes competed for them).",
+        f"the end (above {cpu.get('logical_cpus')}, other processes competed for the cores).",
         "",
         f"{NPIX} x {NPIX} PSF at {WAVELENGTH_NM:g} nm, {PUPIL_SAMPLES} samples across a "
         f"{DIAMETER_MM:g} mm pupil, {PX_PER_LAMBDA_OVER_D} px per lambda / D. Times are medians "
-        "after compilation, all calls of a shape timed in interleaved rounds, with their "
-        "ratio to the fastest bare 512 x 512 complex64 FFT of the same rounds in brackets "
-        f"({floor_text}). Errors: "
+        "(and minima) after compilation, all calls of a shape timed in interleaved rounds, "
+        "with their ratio to the fastest bare 512 x 512 complex64 FFT of the same rounds "
+        f"in brackets ({floor_text}). Errors: "
         "largest and rms pixel difference from the closed form (Airy; polygon far field) over "
         "its peak, on each code's own grid, each PSF scaled to the closed form's energy in the "
-        "field. Gradient: d(sum w * PSF)/d(pupil size).",
+        "field. Gradient: d(sum w * PSF)/d(pupil size). 'invglare Nx faster': the peer's median "
+        "over invglare's, same shape and part.",
         "",
         "| shape | code | forward | gradient | max err | rms err | cpu/wall | load | how |",
         "|---|---|---|---|---:|---:|---:|---:|---|",

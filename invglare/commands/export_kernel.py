@@ -191,7 +191,8 @@ def describe(
                 f"this kernel's tint (R:G:B energies {rgb}) becomes neutral, a white light "
                 "gets a white glare. "
                 if tinted
-                else "this kernel's channels are equal, so only its level changes. "
+                else "this kernel's channels hold the same energy to within 0.1 %, so only "
+                "its level changes (to that of a PSF holding all of the light). "
             )
             + "To keep the model's colour and level: Convolve with Normalize Kernel off "
             f"(exactly `invglare render`), or set the Glare node's Tint to ({rgb}) (linear "
