@@ -119,6 +119,7 @@ def test_run_reports_not_installed_and_failed_peers(monkeypatch):
     assert slow["max_err"] == pytest.approx(0.0, abs=1e-12)
     assert slow["gradient"] is None
     assert slow["forward"]["ratio"] > 0 and slow["forward"]["speedup"] > 0
+    assert slow["forward"]["speedup_min"] > 0 and "by minima" in "\n".join(peers_markdown(record))
     assert set(record["floors"]["airy"]) >= {"fft_floor_scipy", "fft_jax"}
     assert record["cpu"]["model"]
     text = "\n".join(peers_markdown(record))
