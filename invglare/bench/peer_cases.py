@@ -4,9 +4,9 @@ Two PSFs, each at 550 nm on a 512 x 512 output with 128 samples across a 4 mm pu
 pixels per lambda / D (the 128-sample pupil in a 512 FFT; the peers reach the same grid
 with their matrix Fourier transforms):
 
-- ``airy``: a clear disk, against :func:`invglare.reference.closed_forms.airy_pixel_psf`;
+- ``airy``: a clear disk, against `invglare.reference.closed_forms.airy_pixel_psf`;
 - ``hexagon``: a regular hexagon of 4 mm corner-to-corner, a corner along +x, against
-  :func:`invglare.reference.closed_forms.polygon_far_field`.
+  `invglare.reference.closed_forms.polygon_far_field`.
 
 Each code computes the PSF its own documented way (invglare: `AperturePSF` on the FFT path,
 jitted; dLux: `AngularOpticalSystem` with a dynamic aperture, `equinox.filter_jit`, and,
@@ -77,7 +77,7 @@ def cpu_info() -> dict[str, Any]:
     """The CPU's model name and vector extensions (Linux ``/proc/cpuinfo``; else the platform).
 
     **Returns:** ``{"model": str, "vector_extensions": [flag, ...], "logical_cpus": int}``;
-    the extensions are those of :data:`VECTOR_FLAGS` the first CPU lists.
+    the extensions are those of `VECTOR_FLAGS` the first CPU lists.
     """
     import platform
 
@@ -356,7 +356,7 @@ def measure_side_by_side(
 
     On a shared machine the load changes from second to second; calling every function once
     per round spreads those changes evenly over all of them, which timing each in its own
-    block (as :func:`invglare.bench.timing.measure` does) cannot. Stops after `rounds`, or
+    block (as `invglare.bench.timing.measure` does) cannot. Stops after `rounds`, or
     once `budget_s` seconds of rounds are spent (at least 3 rounds).
 
     **Returns:** per name ``median_ms``, ``min_ms``, ``repeats``, ``first_call_s``,
@@ -399,14 +399,14 @@ def run_peer_benchmark(repeats: int = 20, budget_s: float = 30.0) -> dict[str, A
     """Check and time every code on every shape; one record for bench.json's ``"fit"`` list.
 
     Per shape, the FFT floors and every installed code's forward and gradient calls are
-    timed side by side (:func:`measure_side_by_side`, `repeats` rounds, at most `budget_s`
+    timed side by side (`measure_side_by_side`, `repeats` rounds, at most `budget_s`
     seconds of them).
 
     **Returns:** ``{"case": "peers", "kind": "peers", "date", "cpu", "jax", "setup",
     "load_1m_start", "load_1m_end", "rows": [...]}``; each row has the code, shape,
     version, how it was run, ``forward`` and ``gradient`` timings (``gradient`` None when
     the code has none), each with its ``ratio`` to the fastest floor of the same rounds
-    and (peers) the ``speedup`` of invglare over it, the accuracy (:func:`psf_error`), or
+    and (peers) the ``speedup`` of invglare over it, the accuracy (`psf_error`), or
     ``status: "not installed"`` / ``"failed: ..."``. The floors' timings are in
     ``floors[shape]``.
     """

@@ -1,6 +1,6 @@
 """``invglare export-kernel``: a model's PSF as a Blender or Unreal convolution kernel (EXR).
 
-The layout and what each renderer does with the file are in :mod:`invglare.render.kernels`;
+The layout and what each renderer does with the file are in `invglare.render.kernels`;
 this command builds the model, checks it can be one kernel (shift invariant), resamples
 its PSF to the frame's pixel scale as `invglare render` does, writes a linear float32 RGB
 EXR and tells the user how to set the renderer up.

@@ -1,11 +1,11 @@
 """A glare PSF as a renderer's convolution kernel: Blender's compositor and Unreal's bloom.
 
 `invglare render` spreads every pixel of a frame with the PSF
-(:func:`invglare.render.convolve.convolve_psf`: pixel ``i`` sends ``psf[c + d]`` to the pixel
+(`invglare.render.convolve.convolve_psf`: pixel ``i`` sends ``psf[c + d]`` to the pixel
 ``d`` away, ``c`` the PSF's centre). A renderer that convolves a frame with a kernel image
 gives the same result only when the kernel is laid out the way that renderer reads it.
 This module lays a PSF (already at the frame's pixel scale, energy per pixel) out for each
-target; `invglare export-kernel` (:mod:`invglare.commands.export_kernel`) writes the result
+target; `invglare export-kernel` (`invglare.commands.export_kernel`) writes the result
 as a linear float32 OpenEXR.
 
 **Blender** (compositor, *Glare* node of type *Kernel* and the *Convolve* node). Read from
@@ -18,7 +18,7 @@ and `nodes/composite/nodes/node_composite_glare.cc` / `node_composite_convolve.c
 - the kernel is written into the FFT buffer at ``centre - offset``, so Blender *gathers*
   (``out[x] = sum_s K[s] in[x + s - c]``, the manual's "the kernel is centred over each
   pixel ... multiplied by the corresponding kernel value"), which is the spread of the
-  kernel **point-reflected**. :func:`blender_kernel` therefore stores the PSF rotated by
+  kernel **point-reflected**. `blender_kernel` therefore stores the PSF rotated by
   180 deg (a no-op for the point-symmetric PSF of any real aperture in the Fraunhofer
   regime; it matters for Fresnel, position-dependent or synthetic PSFs);
 - image and kernel are zero-padded to ``image + max(kernel, image) - 1``: no wrap-around,
@@ -31,7 +31,7 @@ and `nodes/composite/nodes/node_composite_glare.cc` / `node_composite_convolve.c
   whatever the PSF's colour (a spectral PSF whose red holds less energy in the field than
   its blue becomes neutral). Three ways to keep it: the *Convolve* node with *Normalize
   Kernel* off (the file's absolute values: exactly `invglare render`); or the *Glare*
-  node's *Tint* set to the kernel's channel energies (:func:`channel_energy`, printed by
+  node's *Tint* set to the kernel's channel energies (`channel_energy`, printed by
   the command; a linear colour, whose values may exceed 1 for an RGB PSF, with *Strength*
   1); or a *Mix* (multiply) by that colour after a normalising *Convolve*;
 - the *Glare* node convolves its *highlights* (each pixel's HSV value minus *Threshold*;
@@ -54,18 +54,18 @@ and `nodes/composite/nodes/node_composite_glare.cc` / `node_composite_convolve.c
   close to (.5,.5)": an odd size puts the centre pixel's centre at UV (0.5, 0.5) exactly;
 - *Convolution Scale*: "Relative size of the convolution kernel image compared to the
   minor axis of the viewport": one kernel texel per screen pixel is
-  ``size_px / minor_axis_px`` (:func:`unreal_convolution_scale`), with the kernel made at
-  the screen's pixel scale (:func:`viewport_pixel_scale_deg`);
+  ``size_px / minor_axis_px`` (`unreal_convolution_scale`), with the kernel made at
+  the screen's pixel scale (`viewport_pixel_scale_deg`);
 - *Scatter Dispersion* (5.0+): "Intensity multiplier on the scatter dispersion energy of
   the kernel. 1.0 means exactly use the same energy as the kernel scatter dispersion": the
   engine reads the scattered energy *relative to the kernel's centre*. Hence the exported
   kernel keeps the PSF's **unclipped** centre pixel and its true core-to-halo energy ratio
-  (:func:`centre_fraction`); a clipped or boosted centre would change how much light
+  (`centre_fraction`); a clipped or boosted centre would change how much light
   scatters. The reference pages found do not state how the engine normalises the
   kernel's total; the tests model it as a unit-sum normalisation (what a scatter model in
   which only ratios within the kernel matter implies), under which the bloom is
   `invglare render`'s frame divided by the energy the kernel holds (set *Intensity* to
-  :func:`channel_energy`'s luminance to keep the absolute level);
+  `channel_energy`'s luminance to keep the absolute level);
 - *Convolution Buffer* (``BufferScale``): the padding that stops the bloom wrapping
   across the screen.
 
@@ -111,7 +111,7 @@ def check_kernel_request(target: str, npix: int | None = None) -> str:
 
     **Arguments:**
 
-    - `target`: one of :data:`TARGETS` (case-insensitive).
+    - `target`: one of `TARGETS` (case-insensitive).
     - `npix`: the kernel's size in pixels, odd and >= 3, or None (the PSF's own size,
       made odd).
 
@@ -152,7 +152,7 @@ def centred(psf: Float[ArrayLike, "h w *c"], npix: int) -> Float[Array, "npix np
     """Crop or zero-pad a PSF to `npix` x `npix` keeping its centre pixel in the middle.
 
     The PSF's centre is ``(h // 2, w // 2)`` (the convention of
-    :func:`invglare.render.convolve.convolve_psf`); it lands on ``(npix // 2, npix // 2)``.
+    `invglare.render.convolve.convolve_psf`); it lands on ``(npix // 2, npix // 2)``.
     Energy outside the new window is dropped.
 
     **Example:**
@@ -235,12 +235,12 @@ def unreal_kernel(psf: Float[ArrayLike, "h w *c"], npix: int | None = None) -> K
 
     Odd size (the centre pixel's centre is UV (0.5, 0.5) exactly), RGB, the PSF's absolute
     values: the centre pixel unclipped, so the ratio of the light that stays focused to
-    the light that scatters is the model's (:func:`centre_fraction`). Not reflected: an
+    the light that scatters is the model's (`centre_fraction`). Not reflected: an
     FFT convolution spreads its kernel as `convolve_psf` does (only a PSF without point
-    symmetry would tell). Check :func:`peak_offset_px` before use: the engine expects the
+    symmetry would tell). Check `peak_offset_px` before use: the engine expects the
     brightest pixel at the centre.
 
-    **Arguments:** as :func:`blender_kernel`.
+    **Arguments:** as `blender_kernel`.
 
     **Returns:** `(npix, npix, 3)`, the PSF's dtype.
     """
@@ -248,7 +248,7 @@ def unreal_kernel(psf: Float[ArrayLike, "h w *c"], npix: int | None = None) -> K
 
 
 def kernel_for(target: str, psf: Float[ArrayLike, "h w *c"], npix: int | None = None) -> Kernel:
-    """:func:`blender_kernel` or :func:`unreal_kernel` by name (validated first)."""
+    """`blender_kernel` or `unreal_kernel` by name (validated first)."""
     name = check_kernel_request(target, npix)
     return blender_kernel(psf, npix) if name == "blender" else unreal_kernel(psf, npix)
 
@@ -263,7 +263,7 @@ def channel_energy(kernel: Float[ArrayLike, "n n 3"]) -> Float[Array, " 3"]:
 
 
 def luminance_energy(kernel: Float[ArrayLike, "n n 3"]) -> Float[Array, ""]:
-    """The Rec. 709 luminance of :func:`channel_energy` (one number for a whole kernel)."""
+    """The Rec. 709 luminance of `channel_energy` (one number for a whole kernel)."""
     return rec709_luminance(channel_energy(kernel))
 
 
