@@ -405,6 +405,54 @@ def sample(
     )
 
 
+@app.command("export-kernel")
+@_reports_user_errors
+def export_kernel(
+    config: Annotated[Path, typer.Argument(help="Model config (TOML), shift invariant.")],
+    target: Annotated[
+        str, typer.Option("--for", help="The renderer: blender (compositor) or unreal (bloom).")
+    ],
+    out: Annotated[Path, typer.Option("--out", "-o", help="Output EXR file.")] = Path("kernel.exr"),
+    npix: Annotated[
+        int | None, typer.Option(help="Kernel size in pixels, odd (default: the PSF's field).")
+    ] = None,
+    pixel_scale_deg: Annotated[
+        float | None,
+        typer.Option("--pixel-scale-deg", help="The frame's pixel scale (default: the model's)."),
+    ] = None,
+    wavelengths_nm: Annotated[
+        str | None,
+        typer.Option("--wavelengths-nm", help="One value, a list or 380:770:32 (RGB kernel)."),
+    ] = None,
+    viewport: Annotated[
+        str | None, typer.Option(help="Screen size WIDTHxHEIGHT (sets Unreal's Convolution Scale).")
+    ] = None,
+    fov_deg: Annotated[
+        float | None,
+        typer.Option("--fov-deg", help="Horizontal field of view; with --viewport, the scale."),
+    ] = None,
+) -> None:
+    """Write a model's PSF as a renderer's convolution kernel: odd size, linear float EXR.
+
+    --for blender: for the compositor's Glare (Kernel) and Convolve nodes (stored rotated
+    by 180 deg, as Blender gathers). --for unreal: for the convolution bloom (peak at UV
+    0.5, 0.5, unclipped). The command prints how to set the renderer up, including what
+    its kernel normalisation does to a coloured kernel.
+    """
+    from invglare.commands.export_kernel import run_export_kernel
+
+    run_export_kernel(
+        config,
+        out,
+        target,
+        npix,
+        pixel_scale_deg,
+        wavelengths_nm,
+        viewport=viewport,
+        fov_deg=fov_deg,
+    )
+
+
 def main() -> None:
     app()
 

@@ -31,6 +31,7 @@ from invglare._core.allocator import retain_freed_memory
 from invglare.bench.cases import CASES as STATIC_CASES
 from invglare.bench.cases import Case
 from invglare.bench.fit import FIT_CASES
+from invglare.bench.peer_cases import PEER_CASES, cpu_info
 from invglare.bench.sample import SAMPLE_CASES
 from invglare.bench.temporal_cases import TEMPORAL_CASES, stage_markdown
 from invglare.bench.timing import load_1m, measure
@@ -69,8 +70,9 @@ NOTES = (
 def select(patterns: list[str], skip: list[str] | None = None) -> tuple[list[Case], list[str]]:
     """The per-size cases and fit benchmarks to run.
 
-    A case runs when its name contains one of `patterns` (all cases without patterns)
-    and none of `skip`. The floors and :data:`REFERENCES` are never skipped and run
+    A case runs when its name contains one of `patterns` (all cases without patterns,
+    except the peers benchmark, which runs only when a pattern names it) and none of
+    `skip`. The floors and :data:`REFERENCES` are never skipped and run
     whenever a per-size pipeline case does: the ratios need them.
 
     **Raises:** `ConfigError` listing the cases when nothing is left to run.
@@ -86,8 +88,12 @@ def select(patterns: list[str], skip: list[str] | None = None) -> tuple[list[Cas
     always = [c for c in CASES if c.kind == "floor" or c.name in REFERENCES]
     cases = [c for c in CASES if c in pipelines or (pipelines and c in always)]
     fits = [name for name in (*FIT_CASES, *SAMPLE_CASES) if wanted(name)]
+    # The peers (other packages, installed by the bench extra) run only when named.
+    fits += [name for name in PEER_CASES if patterns and wanted(name)]
     if not pipelines and not fits:
-        names = ", ".join([c.name for c in CASES] + list(FIT_CASES) + list(SAMPLE_CASES))
+        names = ", ".join(
+            [c.name for c in CASES] + list(FIT_CASES) + list(SAMPLE_CASES) + list(PEER_CASES)
+        )
         raise ConfigError(
             f"no benchmark case matches {patterns}"
             + (f" once {skip} are skipped" if skip else "")
@@ -117,6 +123,7 @@ def _meta() -> dict[str, Any]:
         "date": dt.datetime.now(dt.UTC).strftime("%Y-%m-%d %H:%M UTC"),
         "machine": f"{platform.machine()}, {os.cpu_count()} cores, Python "
         f"{platform.python_version()}",
+        "cpu": cpu_info(),
         "jax": f"{jax.__version__} ({jax.default_backend()})",
         "xla_flags": os.environ.get("XLA_FLAGS", ""),
         "retain_freed_memory": retain_freed_memory(),
@@ -210,7 +217,12 @@ def run_bench(
         from invglare.bench.sample import run_sample_benchmark
 
         try:
-            if name in SAMPLE_CASES:
+            if name in PEER_CASES:
+                from invglare.bench.peer_cases import run_peer_benchmark
+
+                log.info("running the peers benchmark (dLux, hcipy, poppy; a minute or two)")
+                record = run_peer_benchmark(repeats, budget_s)
+            elif name in SAMPLE_CASES:
                 log.info("running the sampling benchmark %s (a few minutes)", name)
                 record = run_sample_benchmark()
             else:
@@ -293,6 +305,14 @@ def _add_ratios(records: list[dict]) -> None:
         r["vs_forward"] = round(r["median_ms"] / fwd["median_ms"], 3) if fwd else None
 
 
+def _cpu_line(cpu: dict | None) -> str:
+    """The processor and its vector extensions: runs on other machines differ by them."""
+    if not cpu:
+        return "CPU: not recorded."
+    flags = ", ".join(cpu.get("vector_extensions", [])) or "none read"
+    return f"CPU: {cpu.get('model')}; vector extensions {flags}."
+
+
 def _num(x: float | None, fmt: str) -> str:
     return "" if x is None else format(x, fmt)
 
@@ -300,6 +320,7 @@ def _num(x: float | None, fmt: str) -> str:
 def render_markdown(records: list[dict], meta: dict, fit_records: list[dict] | None = None) -> str:
     """bench.md: notes, a ratio overview (case x N), the full table, the fit section."""
     from invglare.bench.fit import fit_markdown
+    from invglare.bench.peer_cases import peers_markdown
     from invglare.bench.sample import sample_markdown
 
     lines = [
@@ -308,6 +329,8 @@ def render_markdown(records: list[dict], meta: dict, fit_records: list[dict] | N
         f"Measured {meta['date']} on {meta['machine']}; JAX {meta['jax']}. Load average "
         f"(1 min) {meta.get('load_1m_start')} at the start, {meta.get('load_1m_end')} at the "
         f"end; the run took {meta.get('wall_s', '?')} s.",
+        "",
+        _cpu_line(meta.get("cpu")),
         "",
         *[f"- {note}" for note in meta.get("notes", [])],
         "",
@@ -368,8 +391,8 @@ def render_markdown(records: list[dict], meta: dict, fit_records: list[dict] | N
         lines += ["", "## Failed cases", ""]
         lines += [f"- {failure}" for failure in failures]
     for record in fit_records or []:
-        section = (
-            sample_markdown(record) if record.get("kind") == "sample" else fit_markdown(record)
-        )
+        kind = record.get("kind")
+        markdown = {"sample": sample_markdown, "peers": peers_markdown}.get(kind, fit_markdown)
+        section = markdown(record)
         lines += ["", *section]
     return "\n".join(lines) + "\n"
