@@ -23,7 +23,7 @@ from invglare.files.images import write_png
 from invglare.files.toml import load_toml
 from invglare.fit.params import START_MARGIN
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 FITS = ROOT / "fits"
 runner = CliRunner()
 DIAMETER = "model.aperture.shapes[0].diameter_mm"

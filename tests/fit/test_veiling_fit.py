@@ -150,7 +150,7 @@ def test_fit_command_recovers_each_ghost_of_a_synthetic_veiling_frame(tmp_path):
 def test_bundled_veiling_fit_config_loads_with_its_truth():
     from invglare.config.fit import load_fit
 
-    root = Path(__file__).resolve().parents[1]
+    root = Path(__file__).resolve().parents[2]
     with x64():
         setup = load_fit(root / "fits" / "veiling_cooke.toml")
         assert setup.target.shape == (256, 384)

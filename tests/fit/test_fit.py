@@ -753,7 +753,7 @@ def _daylight_eye_forward(npix: int = 64) -> Forward:
     from invglare.config.model import build_model
     from invglare.files.toml import load_toml
 
-    config = load_toml(Path(__file__).resolve().parents[1] / "examples" / "eye_daylight.toml")
+    config = load_toml(Path(__file__).resolve().parents[2] / "examples" / "eye_daylight.toml")
     config["model"]["aperture_npix"] = npix
     config["output"]["npix"] = npix
     obs = Observation(flux=1e6, background=10.0, gain=2.0, read_noise=3.0)

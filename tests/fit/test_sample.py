@@ -276,7 +276,7 @@ def test_killed_process_resumes_without_losing_stored_steps(tmp_path):
     script = textwrap.dedent(
         f"""
         import sys
-        sys.path.insert(0, {str(Path(__file__).parent)!r})
+        sys.path[:0] = [{str(Path(__file__).parent)!r}, {str(Path(__file__).parents[1])!r}]
         import jax
         jax.config.update("jax_enable_x64", True)
         from test_sample import toy_problem, toy_analytic, toy_fit_result
@@ -561,7 +561,7 @@ def test_a_reference_fit_is_refused_with_the_reason():
 
     from invglare.cli import app
 
-    config = Path(__file__).resolve().parents[1] / "fits" / "cie_A50_p1.toml"
+    config = Path(__file__).resolve().parents[2] / "fits" / "cie_A50_p1.toml"
     result = CliRunner().invoke(app, ["sample", str(config)])
     assert result.exit_code == 2
     assert "reference glare function" in result.output
