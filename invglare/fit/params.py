@@ -4,7 +4,19 @@ A fit never looks inside a model. It addresses each free parameter by a dotted
 *path* into the model's pytree (``"aperture.shapes[0].diameter_mm"``,
 ``"obs.flux"``, ``"spectrum.wavelengths_nm[0]"``), writes values with
 `eqx.tree_at`, and optimises an unconstrained *latent* vector from which the
-physical values are recovered by per-parameter transforms:
+physical values are recovered by per-parameter transforms.
+
+**One path language.** Paths are the one way a value of a model is named: in Python,
+in a fit config's ``[[free]]``, ``[[discrete]]`` and ``[[stage]].fixed``, in a synth
+spec's ``[set]`` (configs spell model-config keys this way too, see
+:mod:`invglare.config.paths`). A part that models store under different field names
+has one name in a path (:data:`FIELD_ALIASES`): a model's aperture is ``aperture`` in
+every model, so the pupil is ``model.aperture.pupil.diameter_mm`` in a Kakimoto eye and
+in the temporal eye (whose field is ``eye``). The older spelling ``model.eye.…`` of the
+temporal eye still works, with a :class:`DeprecationWarning` naming the new one, once
+per spelling.
+
+The transforms:
 
 | transform  | physical `x` from latent `z`                 | used (``"auto"``) when     |
 |------------|----------------------------------------------|----------------------------|
@@ -22,6 +34,7 @@ import dataclasses
 import difflib
 import math
 import re
+import warnings
 from collections.abc import Mapping, Sequence
 from typing import Any
 
@@ -41,6 +54,15 @@ PRIORS = ("uniform", "normal", "lognormal")
 START_MARGIN = 0.03
 
 _TOKEN = re.compile(r"\.?([A-Za-z_][A-Za-z_0-9]*)|\[\s*(-?\d+(?:\s*,\s*-?\d+)*)\s*\]")
+
+#: The name a path gives a part of a model, and the other field names models store it
+#: under. A path naming the part by one of those (``model.eye.…`` for the temporal
+#: model's aperture) is the older spelling: it still resolves, with a DeprecationWarning.
+FIELD_ALIASES: dict[str, tuple[str, ...]] = {"aperture": ("eye",)}
+_ALIAS_OF = {alias: name for name, aliases in FIELD_ALIASES.items() for alias in aliases}
+
+#: Old spellings already warned about (each is warned about once per process).
+_WARNED: set[str] = set()
 
 
 # --------------------------------------------------------------------------------------
@@ -77,17 +99,41 @@ def parse_path(path: str) -> tuple[str | int, ...]:
     return tuple(steps)
 
 
-def _format_path(keys) -> str:
+def _field(node: Any, name: str) -> str | None:
+    """The field of `node` that a path step `name` names (an alias resolved), or None."""
+    if isinstance(node, list | tuple | dict):
+        return None
+    if hasattr(node, name):
+        return name
+    for alias in FIELD_ALIASES.get(name, ()):
+        if hasattr(node, alias):
+            return alias
+    return None
+
+
+def _spelling(node: Any, field: str) -> str:
+    """How a path spells `node`'s `field`: its alias-table name where `node` has no field
+    of that name (``eye`` of the temporal model is spelt ``aperture``)."""
+    name = _ALIAS_OF.get(field)
+    return name if name is not None and not hasattr(node, name) else field
+
+
+def _format_path(tree: Any, keys) -> str:
     out = ""
+    node = tree
     for k in keys:
         if isinstance(k, jax.tree_util.GetAttrKey):
-            out += f".{k.name}"
+            out += f".{_spelling(node, k.name)}"
+            node = getattr(node, k.name, None)
         elif isinstance(k, jax.tree_util.SequenceKey):
             out += f"[{k.idx}]"
+            node = node[k.idx] if isinstance(node, list | tuple) else None
         elif isinstance(k, jax.tree_util.DictKey):
             out += f"[{k.key!r}]"
+            node = None
         else:  # FlattenedIndexKey and friends: not addressable by name
             out += f"<{k}>"
+            node = None
     return out.lstrip(".")
 
 
@@ -101,7 +147,7 @@ def valid_paths(model: Any) -> list[str]:
     Scalar float leaves are listed by their own path; each element of a float
     array leaf is listed with its index (``"center_mm[0]"``, ``"weights_xyz[0, 2]"``).
     Static fields and integer leaves are configuration, not parameters, and are
-    not listed.
+    not listed. Paths are spelt in the one path language (:data:`FIELD_ALIASES`).
 
     **Example:** for ``Forward(AperturePSF(...), Observation(...))`` this includes
     ``"model.aperture.shapes[0].diameter_mm"`` and ``"obs.flux"``.
@@ -110,7 +156,7 @@ def valid_paths(model: Any) -> list[str]:
     for keys, leaf in jax.tree_util.tree_flatten_with_path(model)[0]:
         if not _is_float_array(leaf):
             continue
-        base = _format_path(keys)
+        base = _format_path(model, keys)
         if leaf.ndim == 0:
             out.append(base)
         else:
@@ -136,18 +182,35 @@ def _unknown_path_error(path: str, model: Any, why: str) -> ConfigError:
     )
 
 
-def resolve_path(
-    model: Any, path: str, steps: tuple | None = None
-) -> tuple[tuple, tuple[int, ...]]:
-    """Check `path` against `model`; return ``(steps to the array leaf, element index)``.
+def _respelt(path: str, renames: Mapping[int, str]) -> str:
+    """`path` with its `renames` (``{position of a name step: new name}``) applied, the rest
+    of the text as written."""
+    text = path.strip()
+    out, pos, k = [], 0, 0
+    while pos < len(text):
+        m = _TOKEN.match(text, pos)
+        piece = m.group(0)
+        if m.group(1) is not None:
+            if k in renames:
+                piece = piece.replace(m.group(1), renames[k])
+            k += 1
+        else:
+            k += len(m.group(2).split(","))
+        out.append(piece)
+        pos = m.end()
+    return "".join(out)
 
-    Raises :class:`~invglare.errors.ConfigError` listing the valid paths when the
-    path does not exist, does not end at a float leaf, or does not pick one scalar.
-    `steps` are the already parsed steps of `path`, if at hand.
+
+def _walk(model: Any, path: str, steps: tuple) -> tuple[Any, tuple, tuple[int, ...], str]:
+    """Follow `steps` into `model`: ``(node, field steps taken, element index, spelling)``.
+
+    The walk stops at the first float array (the rest of the steps index it) or after the
+    last step. `spelling` is `path` in the one path language; an older spelling is
+    warned about (once).
     """
-    if steps is None:
-        steps = parse_path(path)
     node = model
+    taken: list = []
+    renames: dict[int, str] = {}
     for depth, step in enumerate(steps):
         if _is_float_array(node):
             index = tuple(steps[depth:])
@@ -160,25 +223,130 @@ def resolve_path(
                     path, model, f"is out of range for an array of shape {node.shape}"
                 )
             index = tuple(i % n for i, n in zip(index, node.shape, strict=True))
-            return tuple(steps[:depth]), index
-        try:
-            if isinstance(step, int):
-                if not isinstance(node, list | tuple):
-                    raise TypeError
-                node = node[step]
-            else:
-                if isinstance(node, list | tuple | dict) or not hasattr(node, step):
-                    raise AttributeError
-                node = getattr(node, step)
-        except (AttributeError, IndexError, TypeError):
-            raise _unknown_path_error(path, model, "does not exist") from None
+            return node, tuple(taken), index, _warn_old_spelling(path, renames)
+        if isinstance(step, int):
+            if not isinstance(node, list | tuple) or not -len(node) <= step < len(node):
+                raise _unknown_path_error(path, model, "does not exist")
+            node = node[step]
+            taken.append(step)
+            continue
+        field = _field(node, step)
+        if field is None:
+            raise _unknown_path_error(path, model, "does not exist")
+        spelt = _spelling(node, field)
+        if spelt != step:
+            renames[depth] = spelt
+        node = getattr(node, field)
+        taken.append(field)
+    return node, tuple(taken), (), _warn_old_spelling(path, renames)
+
+
+def _warn_old_spelling(path: str, renames: Mapping[int, str]) -> str:
+    if not renames:
+        return path
+    new = _respelt(path, renames)
+    if path not in _WARNED:
+        _WARNED.add(path)
+        warnings.warn(
+            f"the parameter path {path!r} is an older spelling; write {new!r} (a model's "
+            "aperture is 'model.aperture' in every model)",
+            DeprecationWarning,
+            stacklevel=4,
+        )
+    return new
+
+
+def resolve_path(
+    model: Any, path: str, steps: tuple | None = None
+) -> tuple[tuple, tuple[int, ...]]:
+    """Check `path` against `model`; return ``(steps to the array leaf, element index)``.
+
+    Raises :class:`~invglare.errors.ConfigError` listing the valid paths when the
+    path does not exist, does not end at a float leaf, or does not pick one scalar.
+    `steps` are the already parsed steps of `path`, if at hand. The returned steps are
+    the model's own field names (an alias of :data:`FIELD_ALIASES` resolved).
+    """
+    if steps is None:
+        steps = parse_path(path)
+    node, taken, index, _ = _walk(model, path, steps)
+    if index:
+        return taken, index
     if not _is_float_array(node):
         raise _unknown_path_error(path, model, "does not end at a float array leaf")
     if node.ndim != 0:
         raise _unknown_path_error(
             path, model, f"is an array of shape {node.shape}; address one element"
         )
-    return tuple(steps), ()
+    return taken, ()
+
+
+def spelling(model: Any, path: str) -> str:
+    """`path` in the one path language: an older spelling (``model.eye.…`` of the temporal
+    model) comes back in the new one (``model.aperture.…``), with a DeprecationWarning
+    the first time. Raises :class:`~invglare.errors.ConfigError` if `path` does not exist.
+
+    **Example:** ``spelling(Forward(temporal_model, obs), "model.eye.pupil.diameter_mm")``
+    is ``"model.aperture.pupil.diameter_mm"``.
+    """
+    resolve_path(model, path)
+    return _walk(model, path, parse_path(path))[3]
+
+
+def read_path(model: Any, path: str) -> float:
+    """The value `model` holds at the scalar `path`, as a Python float.
+
+    **Example:** ``read_path(forward, "obs.flux")``.
+    """
+    steps, index = resolve_path(model, path)
+    leaf = np.asarray(_getter(steps)(model))
+    return float(leaf[index] if index else leaf)
+
+
+def _static_ints(model: Any) -> list[str]:
+    """Paths of the integer-valued static fields of `model`'s modules (its structural choices)."""
+    out: list[str] = []
+
+    def visit(node: Any, prefix: str) -> None:
+        if isinstance(node, list | tuple):
+            for i, child in enumerate(node):
+                visit(child, f"{prefix}[{i}]")
+            return
+        if not isinstance(node, eqx.Module):
+            return
+        for f in dataclasses.fields(node):
+            value = getattr(node, f.name, None)
+            name = f"{prefix}.{_spelling(node, f.name)}".lstrip(".")
+            if f.metadata.get("static", False):
+                if isinstance(value, int) and not isinstance(value, bool):
+                    out.append(name)
+            else:
+                visit(value, name)
+
+    visit(model, "")
+    return out
+
+
+def static_int(model: Any, path: str) -> int:
+    """The integer static field (a structural choice: ``n_blades``, ``n_max``) at `path`.
+
+    These are not fittable leaves: a ``[[discrete]]`` table tries them value by value,
+    each value a rebuilt model. Raises :class:`~invglare.errors.ConfigError` naming the
+    path and listing the valid ones when `path` does not reach one.
+
+    **Example:** ``static_int(forward, "model.aperture.diaphragm.n_blades")`` is ``6``.
+    """
+    node, _, index, _ = _walk(model, path, parse_path(path))
+    if isinstance(node, int) and not isinstance(node, bool) and not index:
+        return node
+    valid = _static_ints(model)
+    what = (
+        "is a fitted value (a float leaf): fit it as a [[free]] parameter"
+        if _is_float_array(node)
+        else "is not an integer choice of the model"
+    )
+    raise ConfigError(
+        f"the path {path!r} {what}; integer choices of this model: {', '.join(valid) or '(none)'}"
+    )
 
 
 def _getter(steps: tuple):
@@ -439,9 +607,16 @@ class ParameterSpace:
         return (False,) * len(self.parameters) + (True,) * len(self.nuisance)
 
     def check(self, model: Any) -> None:
-        """Raise :class:`~invglare.errors.ConfigError` unless every path exists in `model`."""
+        """Raise :class:`~invglare.errors.ConfigError` unless every path exists in `model`
+        and no two name the same value (an older and a newer spelling of one path)."""
+        seen: dict[tuple, str] = {}
         for p in self.all:
-            resolve_path(model, p.path, p.steps)
+            where = resolve_path(model, p.path, p.steps)
+            if where in seen:
+                raise ConfigError(
+                    f"parameters {seen[where]!r} and {p.path!r} name the same value; free it once"
+                )
+            seen[where] = p.path
 
     def values_from(self, values: Mapping[str, float] | ArrayLike) -> Array:
         """A 1-D physical vector from a mapping ``path -> value`` or a sequence."""

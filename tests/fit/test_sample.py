@@ -539,7 +539,7 @@ def test_glare_interval_coverage_over_noise_draws(tmp_path):
 
 
 def test_sample_section_is_checked(tmp_path):
-    from invglare.commands.sample import read_sample_section
+    from invglare.config.sample import read_sample_section
 
     cfg = tmp_path / "fit.toml"
     cfg.write_text("[sample]\nwalkers = 16\nmoves = {de = 0.8, de_snooker = 0.2}\n")
