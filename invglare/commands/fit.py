@@ -19,13 +19,33 @@ invglare fit fits/camera_cross_screen.toml --out-dir /tmp/cam --n-starts 5
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import math
 import time
+import warnings
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
 log = logging.getLogger("invglare")
+
+
+@contextlib.contextmanager
+def logged_deprecations(config: Path) -> Iterator[None]:
+    """Log the DeprecationWarnings raised inside (a config's older spellings) as warnings.
+
+    Python hides DeprecationWarnings raised outside ``__main__``; on the command line the
+    user who wrote the config must see them. Other warnings pass through unchanged.
+    """
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always", DeprecationWarning)
+        yield
+    for w in caught:
+        if issubclass(w.category, DeprecationWarning):
+            log.warning("%s: %s", config, w.message)
+        else:
+            warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
 
 
 class _Progress:
@@ -166,7 +186,8 @@ def run_fit(
         )
     t0 = time.perf_counter()
     with jax.enable_x64(True):
-        setup = load_fit(config, out_dir=out_dir, n_starts=n_starts, max_steps=max_steps)
+        with logged_deprecations(config):
+            setup = load_fit(config, out_dir=out_dir, n_starts=n_starts, max_steps=max_steps)
         log.info(
             "fitting %s: %d free parameters, %d starts, views %s; %s",
             setup.target_path,

@@ -58,6 +58,7 @@ def run_sample(
     """
     import jax
 
+    from invglare.commands.fit import logged_deprecations
     from invglare.config.fit import load_fit
     from invglare.config.sample import read_sample_section
     from invglare.fit import FitResult
@@ -77,7 +78,8 @@ def run_sample(
         opts["batch_size"] = batch_size if batch_size == "auto" else int(batch_size)
 
     with jax.enable_x64(True):
-        setup = load_fit(config, out_dir=out_dir)
+        with logged_deprecations(Path(config)):
+            setup = load_fit(config, out_dir=out_dir)
         params_path = setup.out_dir / "params.json"
         if not params_path.is_file():
             from invglare.commands.fit import run_fit

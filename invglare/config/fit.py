@@ -470,27 +470,13 @@ def load_fit(
     else:
         truth_path = None
 
+    starts = draw_starts(space, ranges, n_cfg, seed)
     return FitSetup(
-        name=name,
-        config_path=config_path,
-        target=target,
-        target_path=tsec.path,
-        pixel_scale_deg=float(scale),
-        forward=forward,
-        space=space,
-        starts=draw_starts(space, ranges, n_cfg, seed),
-        init_ranges=dict(ranges),
-        views=views,
-        view_options=options,
-        solver=solver,
-        seed=seed,
-        stages=stages,
-        scan=scan,
-        discrete=tuple(discrete),
-        truth=truth,
-        truth_path=truth_path,
-        out_dir=out,
-        model_config=model_config,
-        model_path=model_path,
-        wavelength_nm=wavelength,
-    )
+        name=name, config_path=config_path, out_dir=out,
+        target=target, target_path=tsec.path, pixel_scale_deg=float(scale),
+        truth=truth, truth_path=truth_path,
+        model_config=model_config, model_path=model_path, wavelength_nm=wavelength,
+        forward=forward, space=space, discrete=tuple(discrete),
+        starts=starts, init_ranges=dict(ranges), seed=seed, scan=scan,
+        views=views, view_options=options, stages=stages, solver=solver,
+    )  # fmt: skip

@@ -1,14 +1,7 @@
 """The ``[target]`` table of a fit config: the photo, its clip level and its ground truth.
 
-```toml
-[target]
-file = "../data_synthetic/eye_daylight.exr"   # linear photo in counts (EXR or float TIFF)
-pixel_scale_deg = 0.003          # default: the EXR header's pixelScaleDeg
-saturation = 60000.0             # clip level in counts; omit if nothing clipped
-channel = "Y"                    # which channel of a multi-channel file
-linear = false                   # true: accept an integer file known to hold linear counts
-truth = "eye_daylight.truth.json"  # ground truth; default NAME.truth.json beside the photo
-```
+Its keys (``file``, ``pixel_scale_deg``, ``saturation``, ``channel``, ``linear``,
+``truth``) are in the schema of :mod:`invglare.config.fit`.
 
 :func:`read_target_section` checks the table, :func:`load_target` reads and checks the
 photo, :func:`read_truth` reads a synth truth file (``invglare synth`` writes one beside

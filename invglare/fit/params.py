@@ -99,14 +99,23 @@ def parse_path(path: str) -> tuple[str | int, ...]:
     return tuple(steps)
 
 
+def _has_field(node: Any, name: str) -> bool:
+    """Whether `node` holds `name` as data: a dataclass field of a Module (not a method or
+    property of the same name: the temporal model's ``aperture()`` renders its raster), or
+    an attribute of another object."""
+    if isinstance(node, list | tuple | dict):
+        return False
+    if dataclasses.is_dataclass(node):
+        return name in {f.name for f in dataclasses.fields(node)}
+    return hasattr(node, name)
+
+
 def _field(node: Any, name: str) -> str | None:
     """The field of `node` that a path step `name` names (an alias resolved), or None."""
-    if isinstance(node, list | tuple | dict):
-        return None
-    if hasattr(node, name):
+    if _has_field(node, name):
         return name
     for alias in FIELD_ALIASES.get(name, ()):
-        if hasattr(node, alias):
+        if _has_field(node, alias):
             return alias
     return None
 
@@ -115,7 +124,7 @@ def _spelling(node: Any, field: str) -> str:
     """How a path spells `node`'s `field`: its alias-table name where `node` has no field
     of that name (``eye`` of the temporal model is spelt ``aperture``)."""
     name = _ALIAS_OF.get(field)
-    return name if name is not None and not hasattr(node, name) else field
+    return name if name is not None and not _has_field(node, name) else field
 
 
 def _format_path(tree: Any, keys) -> str:
@@ -335,13 +344,16 @@ def static_int(model: Any, path: str) -> int:
 
     **Example:** ``static_int(forward, "model.aperture.diaphragm.n_blades")`` is ``6``.
     """
-    node, _, index, _ = _walk(model, path, parse_path(path))
+    try:
+        node, _, index, _ = _walk(model, path, parse_path(path))
+    except ConfigError:
+        node, index = None, ()
     if isinstance(node, int) and not isinstance(node, bool) and not index:
         return node
     valid = _static_ints(model)
     what = (
         "is a fitted value (a float leaf): fit it as a [[free]] parameter"
-        if _is_float_array(node)
+        if _is_float_array(node) or index
         else "is not an integer choice of the model"
     )
     raise ConfigError(

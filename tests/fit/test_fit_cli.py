@@ -6,6 +6,7 @@ the issue's tolerances. Fits run in float64 (the command enables it itself).
 """
 
 import json
+import logging
 import math
 import re
 import shutil
@@ -293,9 +294,11 @@ def hexagon(tmp_path_factory):
     return folder
 
 
-def test_discrete_choice_is_named_by_its_parameter_path(hexagon):
+def test_discrete_choice_is_named_by_its_parameter_path(hexagon, caplog):
     """[[discrete]] path = the parameter path (as [[free]]); the older model-config key
-    still works, with one DeprecationWarning naming the path, and builds the same models."""
+    still works, with one DeprecationWarning naming the path (logged by the commands), and
+    builds the same models."""
+    from invglare.commands.fit import logged_deprecations
     from invglare.config import fit_tables
 
     new = load_fit(write_fit(hexagon, tail=f'\n[[discrete]]\npath = "{BLADES}"\nvalues = [5, 6]\n'))
@@ -311,6 +314,14 @@ def test_discrete_choice_is_named_by_its_parameter_path(hexagon):
         warnings.simplefilter("error")  # once per spelling: the second read is quiet
         load_fit(write_fit(hexagon, tail=old_tail, name="old.toml"))
     assert old.discrete == new.discrete
+    fit_tables._WARNED.discard("model.shapes.0.n_blades")
+    with caplog.at_level(logging.WARNING, logger="invglare"), logged_deprecations(Path("x.toml")):
+        load_fit(write_fit(hexagon, tail=old_tail, name="old.toml"))
+    assert (
+        "x.toml: discrete[0]: key = 'model.shapes.0.n_blades' (a model-config key) is "
+        "deprecated; name the choice by its parameter path, as [[free]] does: path = "
+        f"{BLADES!r}" in caplog.text
+    )
     # A stored choice (params.json) in either spelling rebuilds the same model.
     five = new.forward_for(new.choice({BLADES: 5}))
     assert five.model.aperture.shapes[0].n_blades == 5
