@@ -94,7 +94,7 @@ import math
 import re
 from collections.abc import Callable, Mapping
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -113,9 +113,22 @@ from invglare.config.synth import read_observation, truth_path_for
 from invglare.config.target import load_target, read_target_section, read_truth, resolve
 from invglare.errors import ConfigError
 from invglare.files.toml import load_toml
-from invglare.fit.stages import Stage
 
-__all__ = ["SECTIONS", "DiscreteOption", "FitSetup", "Stage", "load_fit", "read_fit_section"]
+__all__ = ["SECTIONS", "DiscreteOption", "FitSetup", "load_fit", "read_fit_section"]
+
+if TYPE_CHECKING:
+    from invglare.fit.stages import Stage
+
+
+def __getattr__(name: str) -> Any:
+    # `Stage` lives in invglare.fit.stages; imported on first use, as the fit's other
+    # modules are here, so that reading this module stays free of JAX.
+    if name == "Stage":
+        from invglare.fit.stages import Stage
+
+        return Stage
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
 
 #: [sample] belongs to ``invglare sample`` (read by invglare.config.sample); a fit ignores it.
 SECTIONS = ("fit", "target", "model", "observation", "free", "discrete", "views", "view_options",
