@@ -334,7 +334,7 @@ def _truth_values(
     and of each discrete choice."""
     from invglare.config.model import build_model, model_pixel_scale_deg
     from invglare.fit import Forward, Observation
-    from invglare.fit.params import read_path
+    from invglare.fit.paths import read_path
 
     model_cfg, obs_cfg = read_truth(path)
     truth_model = build_model(model_cfg, path.parent, source=str(path))

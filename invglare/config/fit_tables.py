@@ -74,7 +74,8 @@ def read_free(
     Initial values the table leaves out come from `guesses` or the model
     (:func:`invglare.fit.starts.default_init`).
     """
-    from invglare.fit.params import Parameter, spelling
+    from invglare.fit.params import Parameter
+    from invglare.fit.paths import spelling
     from invglare.fit.starts import default_init
 
     if not isinstance(tables, list) or not tables:
@@ -150,7 +151,7 @@ def read_discrete(tables: Any, model_config: Mapping[str, Any], forward: Any) ->
     ``key`` (a dotted key of the model config) still works, with a DeprecationWarning
     naming the path that replaces it (once per key).
     """
-    from invglare.fit.params import static_int
+    from invglare.fit.paths import static_int
 
     if tables is None:
         return []
@@ -200,7 +201,7 @@ def _path_of_key(kind: str, key: str, forward: Any, where: str) -> str:
     A key whose value the built model holds under no path (a raster size the model
     turns into its grid) keeps its key as its name: there is nothing to rename it to.
     """
-    from invglare.fit.params import static_int
+    from invglare.fit.paths import static_int
 
     path = config_key_to_path(kind, key)
     try:
@@ -262,7 +263,7 @@ def read_view_options(
 def read_stages(tables: Any, default_steps: int, forward: Any, paths: tuple[str, ...]) -> tuple:
     """The :class:`~invglare.fit.stages.Stage` s of the ``[[stage]]`` tables; their
     ``fixed`` paths must be free parameters (`paths`), in any spelling of them."""
-    from invglare.fit.params import spelling
+    from invglare.fit.paths import spelling
     from invglare.fit.stages import Stage
 
     if tables is None:

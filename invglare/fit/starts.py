@@ -28,7 +28,8 @@ import jax
 import numpy as np
 from jaxtyping import ArrayLike, Float
 
-from invglare.fit.params import ParameterSpace, read_path
+from invglare.fit.params import ParameterSpace
+from invglare.fit.paths import read_path
 
 #: A guess on or outside finite bounds is moved this fraction of the width inside them.
 GUESS_MARGIN = 0.01

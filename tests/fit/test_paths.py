@@ -18,8 +18,8 @@ from invglare.config.paths import PREFIXES, config_key_to_path, get_key, path_to
 from invglare.errors import ConfigError
 from invglare.files.toml import load_toml
 from invglare.fit import Forward, Observation, Parameter, ParameterSpace, valid_paths
-from invglare.fit import params as params_module
-from invglare.fit.params import read_path, spelling, static_int
+from invglare.fit import paths as paths_module
+from invglare.fit.paths import read_path, spelling, static_int
 from invglare.models.kakimoto import KakimotoGlare
 from invglare.models.temporal import TemporalGlare
 
@@ -29,7 +29,7 @@ EXAMPLES = Path(__file__).resolve().parents[2] / "examples"
 @pytest.fixture(autouse=True)
 def _fresh_warnings(monkeypatch):
     """Each test sees the first use of every old spelling (they warn once per process)."""
-    monkeypatch.setattr(params_module, "_WARNED", set())
+    monkeypatch.setattr(paths_module, "_WARNED", set())
     monkeypatch.setattr(fit_tables, "_WARNED", set())
 
 
@@ -63,7 +63,7 @@ def test_the_models_store_the_aperture_under_the_two_names_the_alias_joins():
     temporal = {f.name for f in dataclasses.fields(TemporalGlare)}
     assert "aperture" in kakimoto and "eye" not in kakimoto
     assert "eye" in temporal and "aperture" not in temporal
-    assert params_module.FIELD_ALIASES == {"aperture": ("eye",)}
+    assert paths_module.FIELD_ALIASES == {"aperture": ("eye",)}
 
 
 def test_model_aperture_names_the_aperture_of_every_model():
