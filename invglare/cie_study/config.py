@@ -66,7 +66,7 @@ from invglare.aperture.eye import REGIONS
 from invglare.cie_study.annuli import RadialBins, annulus_mean
 from invglare.cie_study.fit import CieFitResult, fit_cie, fit_radial_gsf
 from invglare.cie_study.setup import CieFitSetup, Population
-from invglare.config.fit import read_fit_section
+from invglare.config.fit import is_reference_fit, read_fit_section
 from invglare.config.section import Section, check_sections
 from invglare.errors import ConfigError, InputDataError, PhysicsRangeError
 from invglare.files.toml import load_toml
@@ -82,10 +82,6 @@ _EYE_KEYS = {
     "seed": int,
 }
 
-
-def is_reference_fit(config: dict[str, Any]) -> bool:
-    """Whether a parsed fit config fits a reference glare function (``[reference]``)."""
-    return "reference" in config
 
 
 @dataclasses.dataclass(frozen=True, eq=False)

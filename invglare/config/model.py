@@ -40,6 +40,7 @@ from invglare.config.section import Section
 from invglare.config.temporal import temporal_from_config
 from invglare.config.veiling import veiling_from_config
 from invglare.errors import ConfigError
+from invglare.fit.ghost_report import ghost_report_sections
 from invglare.models.aperture_psf import AperturePSF
 from invglare.models.base import AbstractGlareModel
 from invglare.models.kakimoto import KakimotoGlare
@@ -59,16 +60,23 @@ class ModelKind:
     name: str
     model_class: type[AbstractGlareModel]
     read: ModelReader
+    #: Report sections particular to the kind: ``report(fitted, truth) -> {key: (title,
+    #: lines, data)}`` for a fit's ``report.md`` and ``params.json`` (truth: the true model
+    #: or None).
+    report: Callable[[Any, Any], dict[str, tuple[str, list[str], Any]]] | None = None
 
 
 _KINDS: dict[str, ModelKind] = {}
 
 
 def register_model_kind(
-    name: str, model_class: type[AbstractGlareModel], read: ModelReader
+    name: str,
+    model_class: type[AbstractGlareModel],
+    read: ModelReader,
+    report: Callable[[Any, Any], dict[str, tuple[str, list[str], Any]]] | None = None,
 ) -> ModelKind:
     """Register `model.kind = name`: configs of that kind are read by `read` into a
-    `model_class`.
+    `model_class`; `report` (optional) adds a section to the reports of its fits.
 
     **Raises:** `ConfigError` for a name already taken by another class, or a class that
     does not implement :class:`~invglare.models.base.AbstractGlareModel`.
@@ -89,7 +97,7 @@ def register_model_kind(
         raise ConfigError(
             f"model kind {name!r} is taken by {known.model_class.__name__}; choose another name"
         )
-    kind = ModelKind(name, model_class, read)
+    kind = ModelKind(name, model_class, read, report)
     _KINDS[name] = kind
     return kind
 
@@ -114,6 +122,14 @@ def config_kind(config: dict[str, Any], source: str = "config") -> ModelKind:
         raise ConfigError(f"{source}: no [model] section")
     table = Section(config["model"], "model")
     return model_kind(table.get("kind", str, required=True))
+
+
+def kind_of(model: AbstractGlareModel) -> ModelKind:
+    """The registered kind of a built model (the first registered for its class)."""
+    for kind in _KINDS.values():
+        if type(model) is kind.model_class:
+            return kind
+    raise ConfigError(f"{type(model).__name__} is not a registered model kind")
 
 
 def build_model(
@@ -147,5 +163,5 @@ def build_model(
 register_model_kind("aperture", AperturePSF, read_raster_model)
 register_model_kind("eye", KakimotoGlare, read_raster_model)
 register_model_kind("camera", KakimotoGlare, read_raster_model)
-register_model_kind("veiling", VeilingGlare, veiling_from_config)
+register_model_kind("veiling", VeilingGlare, veiling_from_config, report=ghost_report_sections)
 register_model_kind("temporal", TemporalGlare, temporal_from_config)

@@ -97,3 +97,11 @@ def ghost_section(
 
 
 __all__ = ["ghost_section"]
+
+
+def ghost_report_sections(
+    fitted: VeilingGlare, truth: VeilingGlare | None = None
+) -> dict[str, tuple[str, list[str], dict[str, Any]]]:
+    """The report sections of a veiling fit: ``{"ghosts": ("Ghosts", lines, data)}``."""
+    lines, data = ghost_section(fitted, truth)
+    return {"ghosts": ("Ghosts", lines, data)}

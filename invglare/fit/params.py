@@ -1,10 +1,8 @@
 """Parameter spaces: which leaves of a model are free, their bounds, priors and transforms.
 
-A fit never looks inside a model. It addresses each free parameter by a dotted
-*path* into the model's pytree (``"aperture.shapes[0].diameter_mm"``,
-``"obs.flux"``, ``"spectrum.wavelengths_nm[0]"``), writes values with
-`eqx.tree_at`, and optimises an unconstrained *latent* vector from which the
-physical values are recovered by per-parameter transforms:
+Each free parameter is named by its path into the model (:mod:`invglare.fit.paths`, the
+one path language of configs and Python). The fit optimises an unconstrained *latent*
+vector from which the physical values are recovered by per-parameter transforms:
 
 | transform  | physical `x` from latent `z`                 | used (``"auto"``) when     |
 |------------|----------------------------------------------|----------------------------|
@@ -19,9 +17,7 @@ enforced by :meth:`ParameterSpace.log_prior` only (``-inf`` outside).
 from __future__ import annotations
 
 import dataclasses
-import difflib
 import math
-import re
 from collections.abc import Mapping, Sequence
 from typing import Any
 
@@ -32,6 +28,34 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Float, PRNGKeyArray
 
 from invglare.errors import ConfigError
+from invglare.fit.paths import (
+    FIELD_ALIASES,
+    leaf_getter,
+    parse_path,
+    path_of_steps,
+    read_path,
+    resolve_path,
+    spelling,
+    static_int,
+    valid_paths,
+)
+
+# Path functions are part of this module's face too (``invglare.fit.params.resolve_path``).
+__all__ = [
+    "FIELD_ALIASES",
+    "PRIORS",
+    "START_MARGIN",
+    "TRANSFORMS",
+    "Parameter",
+    "ParameterSpace",
+    "Prior",
+    "parse_path",
+    "read_path",
+    "resolve_path",
+    "spelling",
+    "static_int",
+    "valid_paths",
+]
 
 TRANSFORMS = ("auto", "log", "logit", "identity")
 PRIORS = ("uniform", "normal", "lognormal")
@@ -39,156 +63,6 @@ PRIORS = ("uniform", "normal", "lognormal")
 #: Starts are drawn this far (as a fraction of the width) inside finite bounds: a
 #: logit latent at the very edge is huge and its gradient vanishes.
 START_MARGIN = 0.03
-
-_TOKEN = re.compile(r"\.?([A-Za-z_][A-Za-z_0-9]*)|\[\s*(-?\d+(?:\s*,\s*-?\d+)*)\s*\]")
-
-
-# --------------------------------------------------------------------------------------
-# paths
-
-
-def parse_path(path: str) -> tuple[str | int, ...]:
-    """Split a dotted path into steps: attribute names (``str``) and indices (``int``).
-
-    ``[i]`` and ``[i, j]`` give one integer step per index. Whether an index
-    selects a tuple element or an element of an array leaf is settled against a
-    model by :func:`resolve_path`.
-
-    **Example:** ``parse_path("aperture.shapes[0].center_mm[1]")`` gives
-    ``("aperture", "shapes", 0, "center_mm", 1)``.
-    """
-    if not isinstance(path, str) or not path.strip():
-        raise ConfigError(f"a parameter path must be a non-empty string, got {path!r}")
-    text = path.strip()
-    steps: list = []
-    pos = 0
-    while pos < len(text):
-        m = _TOKEN.match(text, pos)
-        if m is None or (pos == 0 and text[0] == "."):
-            raise ConfigError(
-                f"cannot parse parameter path {path!r} at {text[pos:]!r}; write e.g. "
-                "'aperture.shapes[0].diameter_mm' or 'spectrum.wavelengths_nm[0]'"
-            )
-        if m.group(1) is not None:
-            steps.append(m.group(1))
-        else:
-            steps.extend(int(i) for i in m.group(2).split(","))
-        pos = m.end()
-    return tuple(steps)
-
-
-def _format_path(keys) -> str:
-    out = ""
-    for k in keys:
-        if isinstance(k, jax.tree_util.GetAttrKey):
-            out += f".{k.name}"
-        elif isinstance(k, jax.tree_util.SequenceKey):
-            out += f"[{k.idx}]"
-        elif isinstance(k, jax.tree_util.DictKey):
-            out += f"[{k.key!r}]"
-        else:  # FlattenedIndexKey and friends: not addressable by name
-            out += f"<{k}>"
-    return out.lstrip(".")
-
-
-def _is_float_array(x) -> bool:
-    return isinstance(x, jax.Array | np.ndarray) and jnp.issubdtype(x.dtype, jnp.floating)
-
-
-def valid_paths(model: Any) -> list[str]:
-    """Every scalar a :class:`Parameter` can address in `model`, as path strings.
-
-    Scalar float leaves are listed by their own path; each element of a float
-    array leaf is listed with its index (``"center_mm[0]"``, ``"weights_xyz[0, 2]"``).
-    Static fields and integer leaves are configuration, not parameters, and are
-    not listed.
-
-    **Example:** for ``Forward(AperturePSF(...), Observation(...))`` this includes
-    ``"model.aperture.shapes[0].diameter_mm"`` and ``"obs.flux"``.
-    """
-    out: list[str] = []
-    for keys, leaf in jax.tree_util.tree_flatten_with_path(model)[0]:
-        if not _is_float_array(leaf):
-            continue
-        base = _format_path(keys)
-        if leaf.ndim == 0:
-            out.append(base)
-        else:
-            for idx in np.ndindex(*leaf.shape):
-                out.append(f"{base}[{', '.join(str(i) for i in idx)}]")
-    return out
-
-
-def _canonical(steps: Sequence) -> str:
-    out = ""
-    for s in steps:
-        out += f"[{s}]" if isinstance(s, int) else f".{s}"
-    return out.lstrip(".")
-
-
-def _unknown_path_error(path: str, model: Any, why: str) -> ConfigError:
-    valid = valid_paths(model)
-    close = difflib.get_close_matches(path, valid, n=3, cutoff=0.5)
-    hint = f" Did you mean {', '.join(repr(c) for c in close)}?" if close else ""
-    shown = valid if len(valid) <= 60 else [*valid[:60], f"... and {len(valid) - 60} more"]
-    return ConfigError(
-        f"parameter path {path!r} {why}.{hint} Valid paths: {', '.join(shown) or '(none)'}"
-    )
-
-
-def resolve_path(
-    model: Any, path: str, steps: tuple | None = None
-) -> tuple[tuple, tuple[int, ...]]:
-    """Check `path` against `model`; return ``(steps to the array leaf, element index)``.
-
-    Raises :class:`~invglare.errors.ConfigError` listing the valid paths when the
-    path does not exist, does not end at a float leaf, or does not pick one scalar.
-    `steps` are the already parsed steps of `path`, if at hand.
-    """
-    if steps is None:
-        steps = parse_path(path)
-    node = model
-    for depth, step in enumerate(steps):
-        if _is_float_array(node):
-            index = tuple(steps[depth:])
-            if not all(isinstance(i, int) for i in index) or len(index) != node.ndim:
-                raise _unknown_path_error(
-                    path, model, f"indexes an array of shape {node.shape} with {list(index)}"
-                )
-            if any(not -n <= i < n for i, n in zip(index, node.shape, strict=True)):
-                raise _unknown_path_error(
-                    path, model, f"is out of range for an array of shape {node.shape}"
-                )
-            index = tuple(i % n for i, n in zip(index, node.shape, strict=True))
-            return tuple(steps[:depth]), index
-        try:
-            if isinstance(step, int):
-                if not isinstance(node, list | tuple):
-                    raise TypeError
-                node = node[step]
-            else:
-                if isinstance(node, list | tuple | dict) or not hasattr(node, step):
-                    raise AttributeError
-                node = getattr(node, step)
-        except (AttributeError, IndexError, TypeError):
-            raise _unknown_path_error(path, model, "does not exist") from None
-    if not _is_float_array(node):
-        raise _unknown_path_error(path, model, "does not end at a float array leaf")
-    if node.ndim != 0:
-        raise _unknown_path_error(
-            path, model, f"is an array of shape {node.shape}; address one element"
-        )
-    return tuple(steps), ()
-
-
-def _getter(steps: tuple):
-    def where(tree):
-        node = tree
-        for s in steps:
-            node = node[s] if isinstance(s, int) else getattr(node, s)
-        return node
-
-    return where
 
 
 # --------------------------------------------------------------------------------------
@@ -413,7 +287,7 @@ class ParameterSpace:
             raise ConfigError("a parameter space needs at least one free parameter")
         seen: set[str] = set()
         for p in (*params, *nuis):
-            key = _canonical(p.steps)
+            key = path_of_steps(p.steps)
             if key in seen:
                 raise ConfigError(f"parameter {p.path!r} is listed twice")
             seen.add(key)
@@ -439,9 +313,16 @@ class ParameterSpace:
         return (False,) * len(self.parameters) + (True,) * len(self.nuisance)
 
     def check(self, model: Any) -> None:
-        """Raise :class:`~invglare.errors.ConfigError` unless every path exists in `model`."""
+        """Raise :class:`~invglare.errors.ConfigError` unless every path exists in `model`
+        and no two name the same value (an older and a newer spelling of one path)."""
+        seen: dict[tuple, str] = {}
         for p in self.all:
-            resolve_path(model, p.path, p.steps)
+            where = resolve_path(model, p.path, p.steps)
+            if where in seen:
+                raise ConfigError(
+                    f"parameters {seen[where]!r} and {p.path!r} name the same value; free it once"
+                )
+            seen[where] = p.path
 
     def values_from(self, values: Mapping[str, float] | ArrayLike) -> Array:
         """A 1-D physical vector from a mapping ``path -> value`` or a sequence."""
@@ -526,7 +407,7 @@ class ParameterSpace:
             xs = [x[i] for i in range(x.shape[0])]
         for p, value in zip(self.all, xs, strict=True):
             steps, index = resolve_path(model, p.path, p.steps)
-            where = _getter(steps)
+            where = leaf_getter(steps)
             leaf = where(model)
             v = jnp.asarray(value).astype(leaf.dtype)
             if index:
@@ -540,7 +421,7 @@ class ParameterSpace:
         vals = []
         for p in self.all:
             steps, index = resolve_path(model, p.path, p.steps)
-            leaf = _getter(steps)(model)
+            leaf = leaf_getter(steps)(model)
             vals.append(leaf[index] if index else leaf)
         return jnp.stack([jnp.asarray(v, dtype=jnp.result_type(float)) for v in vals])
 

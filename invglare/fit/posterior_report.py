@@ -44,6 +44,7 @@ from invglare.errors import ConfigError
 from invglare.files.atomic import atomic_path, write_json_atomic, write_text_atomic
 from invglare.fit.observation import Forward
 from invglare.fit.params import ParameterSpace
+from invglare.fit.result import _clean  # the one JSON cleaning: arrays to lists, NaN to null
 from invglare.fit.sample import SampleResult
 from invglare.fit.views import radial_bin_radii, radial_profile
 
@@ -106,22 +107,6 @@ def summary_dict(result: SampleResult, name: str | None = None) -> dict[str, Any
             "runs": list(result.runs),
         }
     )
-
-
-def _clean(obj: Any) -> Any:
-    if isinstance(obj, dict):
-        return {k: _clean(v) for k, v in obj.items()}
-    if isinstance(obj, list | tuple):
-        return [_clean(v) for v in obj]
-    if isinstance(obj, np.ndarray):
-        return _clean(obj.tolist())
-    if isinstance(obj, bool | np.bool_):
-        return bool(obj)
-    if isinstance(obj, int | np.integer):
-        return int(obj)
-    if isinstance(obj, float | np.floating):
-        return float(obj) if math.isfinite(obj) else None
-    return obj
 
 
 def _fmt(v: float | None, digits: int = 5) -> str:

@@ -41,7 +41,8 @@ from jaxtyping import Array, Float
 from invglare.config.model import build_model
 from invglare.errors import ConfigError, InputDataError
 from invglare.files.toml import load_toml
-from invglare.fit.params import Parameter, ParameterSpace, _getter, resolve_path
+from invglare.fit.params import Parameter, ParameterSpace, resolve_path
+from invglare.fit.paths import leaf_getter
 from invglare.render.billboard import replace_with_billboards
 from invglare.render.bright import bright_pixel_list, light_angles_deg, luminance
 from invglare.render.convolve import convolve_psf, resample_psf
@@ -119,7 +120,7 @@ def load_model(
 
 def _leaf_value(model: Any, path: str) -> float:
     steps, index = resolve_path(model, path)
-    leaf = np.asarray(_getter(steps)(model))
+    leaf = np.asarray(leaf_getter(steps)(model))
     return float(leaf[index] if index else leaf)
 
 

@@ -17,7 +17,7 @@ from invglare.config.synth import load_synth, truth_path_for
 from invglare.errors import ConfigError
 from invglare.files.exr import read_exr
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 DATA = ROOT / "data_synthetic"
 BUNDLED = ("eye_daylight", "eye_night", "camera_cross_screen", "false_lashes_camera")
 runner = CliRunner()

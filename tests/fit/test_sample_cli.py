@@ -92,7 +92,7 @@ def test_sample_command_fits_samples_resumes_and_reports(tmp_path):
 
 def test_committed_daylight_posterior_converged_and_covers_the_truth():
     """reports/eye_daylight/posterior: `invglare sample fits/eye_daylight.toml` as committed."""
-    folder = Path(__file__).resolve().parents[1] / "reports" / "eye_daylight" / "posterior"
+    folder = Path(__file__).resolve().parents[2] / "reports" / "eye_daylight" / "posterior"
     for name in ("summary.md", "corner.png", "trace.png", "predictive.png", "chain.h5"):
         assert (folder / name).is_file(), name
     summary = json.loads((folder / "summary.json").read_text())

@@ -71,6 +71,8 @@ def test_the_light_angle_leaf_is_the_default_direction_and_round_trips():
 
 
 def test_gradient_through_the_light_angle_leaf_matches_finite_differences():
+    """Autodiff against central differences converging over two steps (1e-3, 1e-4 deg):
+    the relative error falls >= 10x (measured 2.5e-8 -> 2e-10) to below 1e-8."""
     with x64():
         model = _model((1.0, 0.5))
         w = jnp.asarray(np.random.default_rng(3).uniform(size=model.npix))
@@ -80,8 +82,9 @@ def test_gradient_through_the_light_angle_leaf_matches_finite_differences():
             return jnp.sum(w * m()) / m.pixel_solid_angle_sr
 
         ad = float(jax.grad(loss)(1.0))
-        fd = central_difference(loss, 1.0, 1e-6)
-        assert ad == pytest.approx(fd, rel=1e-6) and abs(ad) > 1e-3
+        errors = [abs(central_difference(loss, 1.0, h) - ad) / abs(ad) for h in (1e-3, 1e-4)]
+        assert errors[1] <= errors[0] / 10 and errors[1] < 1e-8, errors
+        assert abs(ad) > 1e-3
         # The same derivative as through the call's argument.
         arg = jax.grad(lambda x: jnp.sum(w * model(jnp.stack([x, 0.5]))))(1.0)
         assert float(arg) / model.pixel_solid_angle_sr == pytest.approx(ad, rel=1e-9)
@@ -150,7 +153,7 @@ def test_fit_command_recovers_each_ghost_of_a_synthetic_veiling_frame(tmp_path):
 def test_bundled_veiling_fit_config_loads_with_its_truth():
     from invglare.config.fit import load_fit
 
-    root = Path(__file__).resolve().parents[1]
+    root = Path(__file__).resolve().parents[2]
     with x64():
         setup = load_fit(root / "fits" / "veiling_cooke.toml")
         assert setup.target.shape == (256, 384)

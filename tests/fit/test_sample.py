@@ -276,7 +276,7 @@ def test_killed_process_resumes_without_losing_stored_steps(tmp_path):
     script = textwrap.dedent(
         f"""
         import sys
-        sys.path.insert(0, {str(Path(__file__).parent)!r})
+        sys.path[:0] = [{str(Path(__file__).parent)!r}, {str(Path(__file__).parents[1])!r}]
         import jax
         jax.config.update("jax_enable_x64", True)
         from test_sample import toy_problem, toy_analytic, toy_fit_result
@@ -485,35 +485,40 @@ def glare_photo(seed):
     return space, template, target
 
 
-def fit_and_sample(seed, path, steps):
+def fit_and_sample(seed, path, steps, walkers=8):
     space, template, target = glare_photo(seed)
     truth = {DIAMETER: TRUE_D, "obs.flux": TRUE_FLUX}
     res = fit(space, template, target, {"pixels": 1.0}, starts=[[3.3, 1.5e5]],
               covariance_scale="absolute", truth=truth)  # fmt: skip
-    post = sample(space, template, target, res, path, n_walkers=8, max_steps=steps,
+    post = sample(space, template, target, res, path, n_walkers=walkers, max_steps=steps,
                   until_converged=False, batch_size=8, progress=False, seed=seed)  # fmt: skip
     return space, template, target, res, post
 
 
 @pytest.mark.slow
 def test_glare_posterior_covers_truth_and_shows_flux_diameter_correlation(tmp_path):
-    """One photo: the 95 % intervals hold the truth; flux and diameter anti-correlate.
+    """One photo: the 95 % intervals hold the truth; flux and diameter anti-correlate; the
+    posterior's widths and correlation are the fit's (Laplace) ones.
 
     The photo pins ``flux * D²`` (the counts) better than D alone, so the correlation
-    is about -0.5 (Fisher information at the truth: -0.49); the samples must show
-    rho < -0.3 and agree with the fit's (Laplace) correlation within 0.15.
+    is about -0.5 (Fisher information at the truth: -0.49). The posterior is Gaussian to
+    0.1 %: its standard deviations, integrated on a 61² grid of ±6 standard errors, are
+    0.9991 and 0.99994 of the fit's. So the chain's may differ from the fit's by its Monte
+    Carlo error alone: 32 walkers x 1500 steps, tau 28-30, give ~1600 effective samples, a
+    standard deviation to ~1.8 % and the correlation to ~0.019; the tolerances, 6 % and
+    0.05, are about 3.4 and 2.6 of those (measured: 2.5 % and 2.8 %, 0.004).
     """
-    space, _template, _target, res, post = fit_and_sample(11, tmp_path / "chain.h5", 700)
+    space, _template, _target, res, post = fit_and_sample(11, tmp_path / "chain.h5", 1500, 32)
+    assert min(post.effective_samples().values()) > 1000
     pc = post.percentiles()
     for p, t in ((DIAMETER, TRUE_D), ("obs.flux", TRUE_FLUX)):
         assert pc[p]["p2_5"] <= t <= pc[p]["p97_5"], (p, pc[p], t)
     rho = post.correlation()[0, 1]
     c = res.covariance
     rho_fit = c[0, 1] / math.sqrt(c[0, 0] * c[1, 1])
-    assert rho < -0.3 and abs(rho - rho_fit) < 0.15, (rho, rho_fit)
-    # The posterior width agrees with the fit's standard errors (a Gaussian posterior).
+    assert rho < -0.3 and abs(rho - rho_fit) < 0.05, (rho, rho_fit)
     for i, p in enumerate(space.paths):
-        assert post.samples()[:, i].std() == pytest.approx(res.stderr[p], rel=0.25)
+        assert post.samples()[:, i].std() == pytest.approx(res.stderr[p], rel=0.06)
 
 
 @pytest.mark.slow
@@ -539,7 +544,7 @@ def test_glare_interval_coverage_over_noise_draws(tmp_path):
 
 
 def test_sample_section_is_checked(tmp_path):
-    from invglare.commands.sample import read_sample_section
+    from invglare.config.sample import read_sample_section
 
     cfg = tmp_path / "fit.toml"
     cfg.write_text("[sample]\nwalkers = 16\nmoves = {de = 0.8, de_snooker = 0.2}\n")
@@ -561,7 +566,7 @@ def test_a_reference_fit_is_refused_with_the_reason():
 
     from invglare.cli import app
 
-    config = Path(__file__).resolve().parents[1] / "fits" / "cie_A50_p1.toml"
+    config = Path(__file__).resolve().parents[2] / "fits" / "cie_A50_p1.toml"
     result = CliRunner().invoke(app, ["sample", str(config)])
     assert result.exit_code == 2
     assert "reference glare function" in result.output

@@ -6,10 +6,14 @@ the issue's tolerances. Fits run in float64 (the command enables it itself).
 """
 
 import json
+import logging
 import math
+import re
 import shutil
+import warnings
 from pathlib import Path
 
+import equinox as eqx
 import numpy as np
 import OpenEXR
 import pytest
@@ -23,7 +27,7 @@ from invglare.files.images import write_png
 from invglare.files.toml import load_toml
 from invglare.fit.params import START_MARGIN
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 FITS = ROOT / "fits"
 runner = CliRunner()
 DIAMETER = "model.aperture.shapes[0].diameter_mm"
@@ -279,18 +283,64 @@ nuisance = true
     assert abs(params["parameters"]["obs.dx_px"]["value"] - 0.3) < 0.03
 
 
-@pytest.mark.slow
-def test_discrete_blade_count_picks_the_truth(tmp_path):
-    """A hexagonal stop; [[discrete]] tries 5 and 6 blades and keeps the lower loss (6)."""
-    folder = tmp_path / "hex"
+BLADES = "model.aperture.shapes[0].n_blades"
+
+
+@pytest.fixture(scope="module")
+def hexagon(tmp_path_factory):
+    """A 64 x 64 photo of a hexagonal stop (6 blades, rotated 10 deg) and its model config."""
+    folder = tmp_path_factory.mktemp("hex")
     make_problem(folder, kind="polygon", extra="\nn_blades = 6\nrotation_deg = 10.0")
-    tail = '\n[[discrete]]\nkey = "model.shapes.0.n_blades"\nvalues = [5, 6]\n'
-    config = write_fit(folder, tail=tail)
+    return folder
+
+
+def test_discrete_choice_is_named_by_its_parameter_path(hexagon, caplog):
+    """[[discrete]] path = the parameter path (as [[free]]); the older model-config key
+    still works, with one DeprecationWarning naming the path (logged by the commands), and
+    builds the same models."""
+    from invglare.commands.fit import logged_deprecations
+    from invglare.config import fit_tables
+
+    new = load_fit(write_fit(hexagon, tail=f'\n[[discrete]]\npath = "{BLADES}"\nvalues = [5, 6]\n'))
+    assert [(d.path, d.key, d.values, d.truth) for d in new.discrete] == [
+        (BLADES, "model.shapes.0.n_blades", (5, 6), 6)
+    ]
+    assert new.candidates() == [{BLADES: 5}, {BLADES: 6}]
+    old_tail = '\n[[discrete]]\nkey = "model.shapes.0.n_blades"\nvalues = [5, 6]\n'
+    fit_tables._WARNED.discard("model.shapes.0.n_blades")
+    with pytest.warns(DeprecationWarning, match=re.escape(f"path = {BLADES!r}")):
+        old = load_fit(write_fit(hexagon, tail=old_tail, name="old.toml"))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # once per spelling: the second read is quiet
+        load_fit(write_fit(hexagon, tail=old_tail, name="old.toml"))
+    assert old.discrete == new.discrete
+    fit_tables._WARNED.discard("model.shapes.0.n_blades")
+    with caplog.at_level(logging.WARNING, logger="invglare"), logged_deprecations(Path("x.toml")):
+        load_fit(write_fit(hexagon, tail=old_tail, name="old.toml"))
+    assert (
+        "x.toml: discrete[0]: key = 'model.shapes.0.n_blades' (a model-config key) is "
+        "deprecated; name the choice by its parameter path, as [[free]] does: path = "
+        f"{BLADES!r}" in caplog.text
+    )
+    # A stored choice (params.json) in either spelling rebuilds the same model.
+    five = new.forward_for(new.choice({BLADES: 5}))
+    assert five.model.aperture.shapes[0].n_blades == 5
+    assert old.choice({"model.shapes.0.n_blades": 5}) == {BLADES: 5}
+    assert eqx.tree_equal(old.forward_for({"model.shapes.0.n_blades": 5}), five)
+    with pytest.raises(ConfigError, match="not one of this fit's"):
+        new.choice({"model.shapes.0.rotation_deg": 5})
+
+
+@pytest.mark.slow
+def test_discrete_blade_count_picks_the_truth(hexagon, tmp_path):
+    """A hexagonal stop; [[discrete]] tries 5 and 6 blades and keeps the lower loss (6)."""
+    tail = f'\n[[discrete]]\npath = "{BLADES}"\nvalues = [5, 6]\n'
+    config = write_fit(hexagon, tail=tail, name="blades.toml")
     out = tmp_path / "hex_report"
     result = invoke("fit", config, "--out-dir", out, "--no-progress")
     assert result.exit_code == 0, result.output
     params = json.loads((out / "params.json").read_text())
-    blades = params["discrete"]["model.shapes.0.n_blades"]
+    blades = params["discrete"][BLADES]
     assert blades["value"] == 6 and blades["truth"] == 6
     losses = {c["value"]: c["loss"] for c in blades["candidates"]}
     assert losses[6] < losses[5]
@@ -372,6 +422,16 @@ def test_bad_photos_are_refused_with_the_reason(disk, tmp_path, kind, match):
             ConfigError,
             "not an integer",
         ),
+        (
+            dict(tail=f'\n[[discrete]]\npath = "{DIAMETER}"\nvalues = [3]\n'),
+            ConfigError,
+            "is a fitted value (a float leaf): fit it as a [[free]] parameter",
+        ),
+        (
+            dict(tail='\n[[discrete]]\nkey = "model.shapes.0.n_blade"\nvalues = [3]\n'),
+            ConfigError,
+            "has no key 'model.shapes.0.n_blade' (stopped at 'n_blade')",
+        ),
     ],
 )
 def test_bad_configs_are_one_line_errors(disk, tmp_path, edit, error, match):
@@ -395,9 +455,9 @@ def _interrupt(*args, **kwargs):
 
 
 def test_ctrl_c_during_the_fit_leaves_no_report(disk, monkeypatch):
-    import invglare.fit
+    import invglare.fit.stages
 
-    monkeypatch.setattr(invglare.fit, "fit", _interrupt)
+    monkeypatch.setattr(invglare.fit.stages, "fit", _interrupt)
     out = disk / "interrupted"
     result = invoke("fit", write_fit(disk), "--out-dir", out, "--no-progress")
     assert result.exit_code == 130 and "interrupted" in result.output

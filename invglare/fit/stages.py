@@ -1,0 +1,350 @@
+"""Staged fits: a scan across the bounds, stages that seed each other, held parameters.
+
+A photo's pixel-wise objective is often multimodal (a pupil's Airy rings, lash streaks
+that speckle by their random draw), so a fit runs as a plan:
+
+1. optionally a **scan**: points across the bounds scored by the first stage's loss (no
+   solving), the best `n_starts` kept as starts; with the flux free, each point gets the
+   flux that matches the photo's unclipped pixels first (:func:`scan`);
+2. **stages** (:class:`Stage`) before the final fit, each on views that do not depend on
+   the random draw (radial profile, angular energy), from the best result of the one
+   before, with some parameters **held** at their start values (:func:`hold`);
+3. the **final** fit, on the final views, from the best result so far.
+
+:func:`fit_staged` runs the plan and returns one :class:`~invglare.fit.FitResult`
+carrying every stage's record. Nothing here prints: progress reaches the caller through
+callbacks (:class:`~invglare.fit.FitProgress` per accepted solver step,
+:class:`ScanProgress` per scored point, :class:`StageDone` after each stage).
+
+**Example:**
+
+```python
+import jax
+from invglare.config.fit import load_fit
+
+with jax.enable_x64(True):
+    setup = load_fit("fits/eye_daylight.toml")
+    result = setup.fit()                 # = fit_staged(setup.space, setup.forward, ...)
+print(result.summary())
+```
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import re
+from collections.abc import Callable, Mapping, Sequence
+from typing import Any, NamedTuple
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import ArrayLike, Float
+
+from invglare.errors import ConfigError
+from invglare.fit.observation import Forward
+from invglare.fit.params import ParameterSpace
+from invglare.fit.result import FitResult
+from invglare.fit.solve import FitProgress, fit
+from invglare.fit.views import ResidualFn, make_residual_fn
+
+
+@dataclasses.dataclass(frozen=True)
+class Stage:
+    """A stage run before the final fit: its views, step budget and the paths it holds fixed.
+
+    Stochastic structure (lash and needle positions) makes the pixel-wise objective
+    multimodal; a first stage on views that do not depend on the random draw (radial
+    profile, angular energy) brings the starts into the right basin for the final
+    pixel-wise stage. Such views hardly constrain some nuisances (the source centre):
+    `fixed` holds them at the values the stage starts from.
+
+    **Example:** ``Stage({"radial": 1.0, "angular": 1.0}, 40, ("obs.dx_px", "obs.dy_px"))``.
+    """
+
+    views: dict[str, float]
+    max_steps: int
+    fixed: tuple[str, ...] = ()
+
+
+class ScanProgress(NamedTuple):
+    """A scan's progress: `done` of `total` points scored by `views` (first report: 0)."""
+
+    done: int
+    total: int
+    views: tuple[str, ...]
+
+
+class StageDone(NamedTuple):
+    """A stage of a staged fit finished (reported when the plan has more than one fit).
+
+    `number` counts the stage records so far, `views` are the stage's, `loss` its best,
+    `best_start` the index of the first stage's start the best result descends from,
+    `values` the parameters of interest there.
+    """
+
+    number: int
+    views: dict[str, float]
+    loss: float
+    best_start: int
+    values: dict[str, float]
+
+
+def fit_staged(
+    space: ParameterSpace,
+    forward: Forward,
+    target: Float[ArrayLike, "h w"],
+    views: Mapping[str, float],
+    starts: Float[ArrayLike, "n p"],
+    *,
+    stages: Sequence[Stage] = (),
+    scan_points: Float[ArrayLike, "m p"] | None = None,
+    view_options: Mapping[str, Mapping[str, Any]] | None = None,
+    truth: Mapping[str, float] | None = None,
+    final: bool = True,
+    resume: FitResult | None = None,
+    progress: Callable[[FitProgress], None] | None = None,
+    scan_progress: Callable[[ScanProgress], None] | None = None,
+    stage_done: Callable[[StageDone], None] | None = None,
+    **solver: Any,
+) -> FitResult:
+    """Run a staged fit: an optional scan, the `stages` in order, then the final fit.
+
+    **Arguments:**
+
+    - `space`, `forward`, `target`: as for :func:`invglare.fit.fit`.
+    - `views`: ``{name: weight}`` of the final fit.
+    - `starts`: ``(n, p)`` physical starts of the first stage (order of `space.paths`).
+    - `stages`: the :class:`Stage` s before the final fit (often none).
+    - `scan_points`: ``(m, p)`` points to score by the first stage's loss; the best
+      ``n`` of them replace `starts` (see :func:`scan`). None: no scan.
+    - `view_options`: ``{view: {option: value}}`` of every view used.
+    - `truth`: ``{path: value}`` where known (carried into the result).
+    - `final`: False runs the stages before the final one only (there must be some);
+      pass that result as `resume` to run the final fit from its best values later
+      (a sweep over discrete choices refines only the most promising choice so).
+    - `progress`: receives every :class:`~invglare.fit.FitProgress`, numbered as
+      stages of one run; `scan_progress` and `stage_done` receive
+      :class:`ScanProgress` and :class:`StageDone`.
+    - `solver`: the remaining keyword arguments of :func:`invglare.fit.fit`
+      (``solver``, ``max_steps``, ``rtol``, ``atol``, ``coarse_to_fine``,
+      ``refine_top``, ``covariance_scale``, ``batch``); a stage's `max_steps` wins.
+
+    **Returns:** the last fit's :class:`~invglare.fit.FitResult` with the earlier
+    stages' records prepended to its `stages` (each record names its views; `origin`
+    indexes the first stage's starts; the first holds the scan's record), its `starts`
+    and `best_start` those of the first stage, and its step count and timings summed.
+
+    **Example:**
+
+    ```python
+    result = fit_staged(space, forward, photo, {"pixels": 1.0}, starts,
+                        stages=[Stage({"radial": 1.0}, 40)])
+    ```
+    """
+    paths = space.paths
+    # Early stages only seed the next: no covariance or images (two compilations fewer).
+    early = {"coarse_to_fine": (1,), "diagnostics": False}
+    pre = [(st.views, {**early, "max_steps": st.max_steps}, st.fixed) for st in stages]
+    if resume is None:
+        plan = pre + ([(views, {}, ())] if final else [])
+        if not plan:
+            raise ConfigError("final=False needs stages to run; there are none")
+        starts = np.asarray(starts)
+        first = starts
+        record = None
+        if scan_points is not None:
+            first_views, _, first_fixed = plan[0]
+            starts, record = scan(
+                space, forward, target, first_views, scan_points,
+                n=starts.shape[0], fixed=first_fixed, view_options=view_options,
+                progress=scan_progress,
+            )  # fmt: skip
+            first = np.asarray(record["starts"])
+        origin = np.arange(starts.shape[0])  # first-stage start each start descends from
+        records: list[dict] = []
+        n_steps = 0
+        timing = {"compile": 0.0, "solve": 0.0, "total": 0.0}
+    else:
+        starts = np.asarray([[resume.values[p] for p in paths]])
+        origin = np.asarray([resume.best_start])
+        records, n_steps, timing = list(resume.stages), resume.n_steps, dict(resume.timing_s)
+        record = None
+        plan = [(views, {}, ())]
+    interest = {q.path for q in space.parameters}
+    for k, (stage_views, overrides, fixed) in enumerate(plan):
+        sub, template, free_starts, held = hold(space, forward, starts, fixed)
+        result = fit(
+            sub,
+            template,
+            target,
+            stage_views,
+            starts=free_starts,
+            n_starts=free_starts.shape[0],
+            progress=_numbered(progress, k, len(plan)),
+            **{
+                **solver,
+                **overrides,
+                "truth": _subset(truth, sub.paths),
+                "view_options": _subset(view_options, stage_views),
+            },
+        )
+        result.values.update(held)
+        for key in timing:
+            timing[key] += float(result.timing_s.get(key, 0.0))
+        for entry in result.stages:
+            entry = dict(entry, views=dict(stage_views))
+            entry["origin"] = [int(origin[i]) for i in entry["origin"]]
+            if not records and record is not None:
+                entry["scan"] = record
+            records.append(entry)
+        n_steps += result.n_steps
+        origin = origin[[result.best_start]]
+        if stage_done is not None and (len(plan) > 1 or resume is not None):
+            stage_done(
+                StageDone(
+                    number=len(records),
+                    views=dict(stage_views),
+                    loss=result.loss,
+                    best_start=int(origin[0]),
+                    values={p: result.values[p] for p in paths if p in interest},
+                )
+            )
+        if k + 1 < len(plan):
+            starts = np.asarray([[result.values[p] for p in paths]])
+    result.stages = records
+    if resume is None:
+        result.starts = [dict(zip(paths, map(float, row), strict=True)) for row in first]
+    else:
+        result.starts = resume.starts
+    result.best_start = int(origin[0])
+    if len(records) > 1:
+        # fit() described only its own stage; say where its start came from.
+        result.message = re.sub(
+            r"\(best of \d+ starts: start \d+\)",
+            f"(stage {len(records)} of {len(records)}; from the best of "
+            f"{len(result.starts)} starts, start {result.best_start})",
+            result.message,
+        )
+    result.n_steps = n_steps
+    result.timing_s = timing
+    return result
+
+
+def _numbered(progress, k: int, n_plan: int):
+    """Report fit `k` of a plan's `n_plan` fits as stages of one run (fits before the last
+    have one stage each; the last may have several, coarse to fine)."""
+    if progress is None:
+        return None
+    return lambda p: progress(p._replace(stage=k + p.stage, n_stages=n_plan - 1 + p.n_stages))
+
+
+def scan(
+    space: ParameterSpace,
+    forward: Forward,
+    target: Float[ArrayLike, "h w"],
+    views: Mapping[str, float],
+    points: Float[ArrayLike, "m p"],
+    *,
+    n: int,
+    fixed: Sequence[str] = (),
+    view_options: Mapping[str, Mapping[str, Any]] | None = None,
+    progress: Callable[[ScanProgress], None] | None = None,
+) -> tuple[Float[np.ndarray, "k p"], dict[str, Any]]:
+    """Score `points` by the loss of `views`; keep the best `n` as starts.
+
+    No solving: one compiled loss, evaluated point by point (`fixed` paths held at the
+    first point's values, as the stage the scan seeds holds them). When the flux is
+    free, each point gets the flux that matches the photo's unclipped pixels (the
+    photo's sum, the initial guess, misses what the clip cut off, which would swamp the
+    comparison); the kept starts carry that flux.
+
+    **Returns:** the kept starts ``(min(n, m), p)`` and a record of the scan (for the
+    report): ``n_points``, ``views``, ``kept`` (indices), ``losses``, ``points`` (the
+    parameters of interest of each point) and ``starts``.
+
+    **Example:** ``starts, record = scan(space, forward, photo, {"radial": 1.0}, points, n=3)``.
+    """
+    points = np.array(points, dtype=np.float64)
+    sub, template, free, _ = hold(space, forward, points, fixed)
+    options = _subset(view_options, views)
+    fn = make_residual_fn(sub, template, target, views, view_options=options)
+    latent = np.asarray(sub.to_latent(free))
+    flux = sub.paths.index("obs.flux") if "obs.flux" in sub.paths else None
+    names = tuple(views)
+    if progress is not None:
+        progress(ScanProgress(0, len(latent), names))
+    losses, fluxes = [], []
+    with jax.enable_x64(True):
+        for i, z in enumerate(latent):
+            loss, f = _scan_point(fn, z, flux)
+            losses.append(float(loss))
+            fluxes.append(float(f))
+            if progress is not None:
+                progress(ScanProgress(i + 1, len(latent), names))
+    losses = np.where(np.isfinite(losses), losses, np.inf)
+    if flux is not None:
+        col = space.paths.index("obs.flux")
+        p = space.all[col]
+        points[:, col] = np.clip(fluxes, p.lower + 1e-12 * abs(p.lower) + 1e-300, p.upper * 0.999)
+    best = np.argsort(losses, kind="stable")[: min(n, len(points))]
+    interest = [p.path for p in space.parameters]
+    cols = [space.paths.index(p) for p in interest]
+    return points[best], {
+        "n_points": len(points),
+        "views": dict(views),
+        "kept": [int(i) for i in best],
+        "losses": [float(v) for v in losses],
+        "points": [dict(zip(interest, map(float, row[cols]), strict=True)) for row in points],
+        "starts": points[best].tolist(),
+    }
+
+
+@eqx.filter_jit
+def _scan_point(fn: ResidualFn, z, flux_index: int | None):
+    """The loss at latent `z`, with the flux matched to the unclipped pixels if free."""
+    if flux_index is None:
+        return fn.loss(z), jnp.nan
+    fwd = fn.forward_at(z)
+    obs = fwd.obs
+    unit = obs.response * obs.transform_psf(fwd.psf())  # counts per unit flux
+    use = ~fn.saturated
+    excess = jnp.sum(jnp.where(use, fn.target - obs.response * obs.background, 0.0))
+    f = jnp.maximum(excess / jnp.sum(jnp.where(use, unit, 0.0)), 1e-30)
+    p = fn.space.all[flux_index]
+    z = z.at[flux_index].set(p.to_latent(f))
+    return fn.loss(z), f
+
+
+def hold(
+    space: ParameterSpace,
+    forward: Forward,
+    starts: Float[ArrayLike, "n p"],
+    fixed: Sequence[str],
+) -> tuple[ParameterSpace, Forward, Float[np.ndarray, "n q"], dict[str, float]]:
+    """The space without the `fixed` paths, a template holding them, and the reduced starts.
+
+    The held values are those of the first start (a stage holds nuisances, which every
+    start shares, or values that the previous stage's best result fixed).
+
+    **Returns:** ``(space without them, forward with them written in, starts of the
+    other parameters, {held path: value})``; everything unchanged when `fixed` is empty.
+
+    **Example:** ``hold(space, forward, starts, ("obs.dx_px", "obs.dy_px"))``.
+    """
+    if not fixed:
+        return space, forward, starts, {}
+    starts = np.asarray(starts)
+    keep = [i for i, p in enumerate(space.paths) if p not in fixed]
+    held = {p: float(starts[0][i]) for i, p in enumerate(space.paths) if p in fixed}
+    sub = ParameterSpace(
+        [p for p in space.parameters if p.path not in fixed],
+        [p for p in space.nuisance if p.path not in fixed],
+    )
+    return sub, space.apply(forward, starts[0]), starts[:, keep], held
+
+
+def _subset(table, keys):
+    """The entries of `table` whose keys are in `keys` (None when there are none)."""
+    return None if table is None else {k: v for k, v in table.items() if k in keys} or None
