@@ -39,12 +39,12 @@ or a cross-screen filter) masked by a pupil (the eye's, or a diaphragm). They ta
     colour = "spectral"           # or "paper_rgb" (680/530/460 nm as R, G, B)
     max_light_angle_deg = 0.0
 
-    [model.eye]                   # see invglare.aperture.eye.eye_from_config
+    [model.eye]                   # see invglare.config.eye.eye_from_config
     seed = 7
     [model.eye.pupil]
     diameter_mm = 3.0
 
-    [model.camera]                # for kind = "camera": CameraAperture.from_config
+    [model.camera]                # for kind = "camera": invglare.config.camera.camera_from_config
     [model.camera.diaphragm]
     n_blades = 6
     f_number = 8.0
@@ -66,10 +66,13 @@ from typing import Any
 
 import numpy as np
 
-from invglare.aperture import Aperture, shape_from_config, shape_to_config
+from invglare.aperture import Aperture, shape_to_config
 from invglare.aperture.camera import CameraAperture, camera_to_config
-from invglare.aperture.eye import EyeAperture, eye_from_config, eye_to_config
+from invglare.aperture.eye import EyeAperture, eye_to_config
+from invglare.config.camera import camera_from_config
+from invglare.config.eye import eye_from_config
 from invglare.config.section import Section, check_sections
+from invglare.config.shapes import shape_from_config
 from invglare.config.veiling import veiling_from_config, veiling_to_config
 from invglare.errors import ConfigError
 from invglare.models.aperture_psf import AperturePSF
@@ -139,7 +142,7 @@ def build_model(
             focal = model.get("focal_length_mm", float, 17.0)
             distance = model.get("obstacle_distance_mm", float, 8.0)
         else:
-            aperture = CameraAperture.from_config(table, "model.camera")
+            aperture = camera_from_config(table, "model.camera")
             focal = model.get("focal_length_mm", float, None)
             if focal is None:
                 focal = float(aperture.diaphragm.focal_length_mm)

@@ -659,7 +659,7 @@ def temporal_from_config(
     [model.tonemap_params]         # keyword parameters of the tone map
     exposure = 1.0
     gamma = 2.2
-    [model.eye]                    # invglare.aperture.eye.eye_from_config
+    [model.eye]                    # invglare.config.eye.eye_from_config
     [model.dynamics.pupil]         # fields of PupilDynamics (and of Accommodation,
     hippus_amplitude_mm = 0.1      #   LensMesh, VitreousBody, LidMotion in
     [model.dynamics.lids]          #   [model.dynamics.accommodation], .lens, .vitreous,
@@ -676,7 +676,7 @@ def temporal_from_config(
     **Raises:** `ConfigError` naming the key for unknown keys, wrong types or choices;
     `PhysicsRangeError` for values out of range.
     """
-    from invglare.aperture.eye import eye_from_config
+    from invglare.config.eye import eye_from_config
     from invglare.config.section import Section, check_sections
 
     del base_dir  # no file references in a temporal model

@@ -1,4 +1,5 @@
-"""Tests of the eye aperture (invglare.aperture.eye) and local stamps (invglare.aperture.stamps).
+"""Tests of the eye aperture (invglare.aperture.eye), its config reader
+(invglare.config.eye) and local stamps (invglare.aperture.shapes.stamps).
 
 Tolerances are stated in the test names / docstrings, with the measured errors beside them
 (float32 unless a test says float64). Grids are 64-128 px to keep the file fast.
@@ -28,18 +29,18 @@ from invglare.aperture.eye import (
     Particles,
     Pupil,
     daylight_eye,
-    eye_from_config,
     eye_to_config,
     night_eye,
     relaxed_weights,
 )
-from invglare.aperture.stamps import (
+from invglare.aperture.shapes.stamps import (
     disks_log_transmission,
     polyline_log_transmission,
     segments_log_transmission,
     transmission_from_log,
     window_half_px,
 )
+from invglare.config.eye import eye_from_config
 from invglare.errors import ConfigError, PhysicsRangeError
 from invglare.optics.fraunhofer import fraunhofer_fft
 
