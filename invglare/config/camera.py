@@ -20,26 +20,19 @@ def camera_from_config(table: dict[str, Any], where: str = "camera") -> CameraAp
     - `where`: where the table sits in the configuration (e.g. ``"model.camera"``), for
       error messages.
 
-    ```toml
-    seed = 0                          # optional: the dust pattern's seed
-    [diaphragm]                       # required
-    n_blades = 6
-    f_number = 8.0
-    focal_length_mm = 50.0
-    rotation_deg = 0.0                # optional
-    rounding = 0.0                    # optional
-    [cross_screen]                    # optional
-    angles_deg = [0.0, 90.0]
-    spacing_mm = 0.2
-    duty_cycle = 0.1
-    line_offset_mm = 0.0              # optional
-    [dust]                            # optional
-    density = 0.05
-    opacity = 0.8
-    feature_size_mm = 0.5
-    octaves = 3                       # optional
-    edge_softness = 0.25              # optional
-    ```
+    Keys (lengths in mm, angles in degrees):
+
+    - `seed` (optional, an integer): the seed of the dust pattern;
+    - `[diaphragm]` (required): `n_blades` (an integer), `f_number`, `focal_length_mm`;
+      optional `rotation_deg`, `rounding`;
+    - `[cross_screen]` (optional): `angles_deg` (a non-empty list), `spacing_mm`,
+      `duty_cycle`; optional `line_offset_mm`;
+    - `[dust]` (optional): `density`, `opacity`, `feature_size_mm`; optional `octaves`
+      (an integer), `edge_softness`.
+
+    For example ``[model.camera.diaphragm]`` with ``n_blades = 6``, ``f_number = 8.0``,
+    ``focal_length_mm = 50.0`` and ``[model.camera.cross_screen]`` with
+    ``angles_deg = [0.0, 90.0]``, ``spacing_mm = 0.2``, ``duty_cycle = 0.1``.
 
     **Returns:** the camera.
 

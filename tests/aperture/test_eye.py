@@ -28,8 +28,8 @@ from invglare.aperture.eye import (
     Gratings,
     Particles,
     Pupil,
-    daylight_eye,
     eye_to_config,
+    lashed_daylight_eye,
     night_eye,
     relaxed_weights,
 )
@@ -584,7 +584,7 @@ def test_config_round_trip_gives_the_same_transmission():
 
 
 def test_presets_have_their_documented_values():
-    day, night = daylight_eye(KEY), night_eye(KEY)
+    day, night = lashed_daylight_eye(KEY), night_eye(KEY)
     assert float(day.pupil.diameter_mm) == 3.0 and float(night.pupil.diameter_mm) == 7.0
     assert [p.region for p in night.particles] == ["lens_nucleus", "vitreous"]
     assert float(night.particles[0].count) == 750.0 and float(night.gratings.count) == 200.0

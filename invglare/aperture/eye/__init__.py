@@ -39,7 +39,7 @@ element sizes or a traced grid.
 (:class:`Eyelashes`), :mod:`.inclusions` (:class:`Particles`, :class:`Gratings`),
 :mod:`.aperture` (:class:`EyeAperture`), :mod:`.pool` (relaxed counts, draws, stamp
 windows), :mod:`.schema` (the config tables and :func:`eye_to_config`), :mod:`.presets`
-(:func:`daylight_eye`, :func:`night_eye`). The reader of eye tables is
+(:func:`lashed_daylight_eye`, :func:`night_eye`). The reader of eye tables is
 :func:`invglare.config.eye.eye_from_config`.
 """
 
@@ -50,7 +50,7 @@ from invglare.aperture.eye.inclusions import Particles as Particles
 from invglare.aperture.eye.lashes import Eyelashes as Eyelashes
 from invglare.aperture.eye.pool import relaxed_weights as relaxed_weights
 from invglare.aperture.eye.pool import smooth_step as smooth_step
-from invglare.aperture.eye.presets import daylight_eye as daylight_eye
+from invglare.aperture.eye.presets import lashed_daylight_eye as lashed_daylight_eye
 from invglare.aperture.eye.presets import night_eye as night_eye
 from invglare.aperture.eye.pupil import LIDS as LIDS
 from invglare.aperture.eye.pupil import Eyelids as Eyelids

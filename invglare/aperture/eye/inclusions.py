@@ -11,19 +11,12 @@ import math
 
 import equinox as eqx
 import jax.numpy as jnp
-from jaxtyping import Array, Float, Key
+from jaxtyping import Array, Float
 
-from invglare._core.checks import as_float, as_key, check_range, choose, is_concrete
+from invglare._core.checks import as_float, check_range, choose, is_concrete
 from invglare._core.grids import ApertureGrid
 from invglare.aperture._checks import check_finite, check_static_int
-from invglare.aperture.eye.pool import (
-    check_count,
-    check_n_max,
-    dtype_of,
-    relaxed_weights,
-    stamp_window,
-    unit_draws,
-)
+from invglare.aperture.eye.pool import AbstractPool, dtype_of, unit_draws
 from invglare.aperture.shapes.stamps import disks_log_transmission, segments_log_transmission
 from invglare.errors import PhysicsRangeError
 
@@ -35,7 +28,7 @@ REGIONS = ("cornea", "lens_nucleus", "vitreous")
 _RADIUS_CLIP_SIGMA = 3.0
 
 
-class Particles(eqx.Module):
+class Particles(AbstractPool):
     """A population of small opaque particles, projected onto the pupil plane.
 
     **Arguments:**
@@ -66,9 +59,6 @@ class Particles(eqx.Module):
     decentration or the obstacle shift.
     """
 
-    count: Float[Array, ""] = eqx.field(converter=as_float)
-    n_max: int = eqx.field(static=True)
-    key: Key[Array, ""] = eqx.field(converter=as_key)
     region: str = eqx.field(static=True, default="lens_nucleus")
     radius_mean_mm: Float[Array, ""] = eqx.field(converter=as_float, default=0.01)
     radius_spread: Float[Array, ""] = eqx.field(converter=as_float, default=0.3)
@@ -77,13 +67,15 @@ class Particles(eqx.Module):
     stamp_bound_mm: float | None = eqx.field(static=True, default=None)
     stamp_half_px: int | None = eqx.field(static=True, default=None)
 
+    @property
+    def owner(self) -> str:
+        return f"{self.region} particles"
+
     def __check_init__(self):
         choose("particles region", self.region, REGIONS)
-        owner = f"{self.region} particles"
-        check_n_max(owner, self.n_max)
+        owner = self.owner
         if self.offsets_mm is not None:
             check_finite(f"{owner} offsets_mm", self.offsets_mm, (self.n_max, 2))
-        check_count(owner, self.count, self.n_max)
         check_range(f"{owner} radius_mean_mm", self.radius_mean_mm, 0.0, lo_open=True, unit="mm")
         check_range(f"{owner} radius_spread", self.radius_spread, 0.0)
         check_range(
@@ -120,22 +112,16 @@ class Particles(eqx.Module):
         s = self.radius_spread
         return self.radius_mean_mm * jnp.exp(s * zc - 0.5 * s * s)
 
-    def weights(self) -> Float[Array, " n_max"]:
-        return relaxed_weights(self.count, self.n_max)
-
     def stamp_bound(self) -> Float[Array, ""]:
         """Largest particle radius (mm)."""
         return jnp.max(self.radii_mm())
-
-    def window_half_px(self, grid: ApertureGrid) -> int:
-        return stamp_window(f"{self.region} particles", grid, self)
 
     def log_transmission(self, grid: ApertureGrid) -> Float[Array, "n n"]:
         """``log`` of the particles' transmission on `grid`."""
         return _particles_log(self, grid, self.window_half_px(grid))
 
 
-class Gratings(eqx.Module):
+class Gratings(AbstractPool):
     """Lens-fibre gratings in the lens cortex: small patches of parallel radial lines.
 
     Lens fibres run from the lens's poles to its equator, so seen along the axis
@@ -160,9 +146,6 @@ class Gratings(eqx.Module):
     Lines are opaque capsules, stamped one by one.
     """
 
-    count: Float[Array, ""] = eqx.field(converter=as_float)
-    n_max: int = eqx.field(static=True)
-    key: Key[Array, ""] = eqx.field(converter=as_key)
     spacing_mm: Float[Array, ""] = eqx.field(converter=as_float, default=0.04)
     line_thickness_mm: Float[Array, ""] = eqx.field(converter=as_float, default=0.012)
     line_length_mm: Float[Array, ""] = eqx.field(converter=as_float, default=0.3)
@@ -172,9 +155,11 @@ class Gratings(eqx.Module):
     stamp_bound_mm: float | None = eqx.field(static=True, default=None)
     stamp_half_px: int | None = eqx.field(static=True, default=None)
 
+    @property
+    def owner(self) -> str:
+        return "gratings"
+
     def __check_init__(self):
-        check_n_max("gratings", self.n_max)
-        check_count("gratings", self.count, self.n_max)
         check_static_int("gratings lines_per_grating", self.lines_per_grating, 1)
         check_range("gratings spacing_mm", self.spacing_mm, 0.0, lo_open=True, unit="mm")
         check_range(
@@ -209,15 +194,12 @@ class Gratings(eqx.Module):
         half = 0.5 * self.line_length_mm * radial[:, None, :]
         starts = (mids - half).reshape(-1, 2)
         ends = (mids + half).reshape(-1, 2)
-        weights = jnp.repeat(relaxed_weights(self.count, self.n_max), lines_n)
+        weights = jnp.repeat(self.weights(), lines_n)
         return starts, ends, weights
 
     def stamp_bound(self) -> Float[Array, ""]:
         """Half-extent (mm) of one line: half its length plus half its width."""
         return 0.5 * (self.line_length_mm + self.line_thickness_mm)
-
-    def window_half_px(self, grid: ApertureGrid) -> int:
-        return stamp_window("gratings", grid, self)
 
     def log_transmission(self, grid: ApertureGrid) -> Float[Array, "n n"]:
         """``log`` of the gratings' transmission on `grid`."""

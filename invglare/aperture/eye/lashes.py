@@ -6,24 +6,17 @@ import math
 
 import equinox as eqx
 import jax.numpy as jnp
-from jaxtyping import Array, ArrayLike, Float, Key
+from jaxtyping import Array, ArrayLike, Float
 
-from invglare._core.checks import as_float, as_key, check_range, choose
+from invglare._core.checks import as_float, check_range, choose
 from invglare._core.grids import ApertureGrid
 from invglare.aperture._checks import check_finite, check_static_int
-from invglare.aperture.eye.pool import (
-    check_count,
-    check_n_max,
-    dtype_of,
-    relaxed_weights,
-    stamp_window,
-    unit_draws,
-)
+from invglare.aperture.eye.pool import AbstractPool, dtype_of, unit_draws
 from invglare.aperture.eye.pupil import LIDS, Eyelids
 from invglare.aperture.shapes.stamps import polyline_log_transmission
 
 
-class Eyelashes(eqx.Module):
+class Eyelashes(AbstractPool):
     """A row of eyelashes rooted along one lid margin.
 
     **Arguments:**
@@ -61,9 +54,6 @@ class Eyelashes(eqx.Module):
     proportional to the lash's length in pixels times the window, not to the grid area.
     """
 
-    count: Float[Array, ""] = eqx.field(converter=as_float)
-    n_max: int = eqx.field(static=True)
-    key: Key[Array, ""] = eqx.field(converter=as_key)
     lid: str = eqx.field(static=True, default="upper")
     mean_angle_deg: Float[Array, ""] = eqx.field(converter=as_float, default=0.0)
     angular_spread_deg: Float[Array, ""] = eqx.field(converter=as_float, default=10.0)
@@ -78,11 +68,13 @@ class Eyelashes(eqx.Module):
     stamp_bound_mm: float | None = eqx.field(static=True, default=None)
     stamp_half_px: int | None = eqx.field(static=True, default=None)
 
+    @property
+    def owner(self) -> str:
+        return f"{self.lid} lashes"
+
     def __check_init__(self):
-        owner = f"{self.lid} lashes"
+        owner = self.owner
         choose("lashes lid", self.lid, LIDS)
-        check_n_max(owner, self.n_max)
-        check_count(owner, self.count, self.n_max)
         check_static_int(f"{owner} segments", self.segments, 1)
         check_finite(f"{owner} mean_angle_deg", self.mean_angle_deg, ())
         check_range(f"{owner} angular_spread_deg", self.angular_spread_deg, 0.0, unit="deg")
@@ -100,10 +92,6 @@ class Eyelashes(eqx.Module):
         length = self.length_mm * (1.0 + self.length_spread * (2.0 * u[:, 0] - 1.0))
         thickness = self.thickness_mm * (1.0 + self.thickness_spread * (2.0 * u[:, 1] - 1.0))
         return u[:, 2], z[:, 0], length, thickness
-
-    def weights(self) -> Float[Array, " n_max"]:
-        """Relaxed-count weight of each lash of the pool."""
-        return relaxed_weights(self.count, self.n_max)
 
     def polylines(
         self, lids: Eyelids, shift_mm: ArrayLike = (0.0, 0.0)
@@ -140,10 +128,6 @@ class Eyelashes(eqx.Module):
         arc = length * jnp.sqrt(1.0 + (self.curvature_per_mm * length) ** 2) / self.segments
         bend = jnp.minimum(jnp.abs(self.curvature_per_mm) * arc, 0.5 * math.pi)
         return jnp.max(0.5 * arc + 0.5 * thickness * (1.0 + jnp.tan(0.5 * bend)))
-
-    def window_half_px(self, grid: ApertureGrid) -> int:
-        """Static stamp-window half-size (px) on `grid`."""
-        return stamp_window(f"{self.lid} lashes", grid, self)
 
     def log_transmission(
         self, grid: ApertureGrid, lids: Eyelids, shift_mm: ArrayLike = (0.0, 0.0)

@@ -1,24 +1,13 @@
-"""The pool of a relaxed count, its random draws, and the stamp window of its elements.
+"""The relaxed-count pool shared by lashes, particles and gratings (see the package docstring).
 
-**Relaxed counts.** Lashes, particles and gratings are drawn as a fixed pool of
-`n_max` elements from an explicit `jax.random` key; element `i` is weighted by
-``smooth_step(count - i)`` (a cubic step from 0 at ``count = i`` to 1 at
-``count = i + 1``). At an integer count exactly that many elements are present;
-in between, one element fades in. Element `i`'s random numbers come from
-``fold_in(key, i)``, so they do not depend on `n_max`: growing the pool keeps
-the existing elements. The draws are *unit* random numbers (uniform or standard
-normal) scaled by the parameters, so gradients reach spreads, lengths and sizes.
-The derivative with respect to a count is 0 at exact integers (the step is
-flat at both ends); start a fit at a non-integer count.
-
-**Stamp windows.** Each element is rasterised on a small local window
-(:mod:`invglare.aperture.shapes.stamps`) whose half-size is a static shape: computed
-here from concrete parameters and the grid pitch, or fixed beforehand with
-:meth:`~invglare.aperture.eye.EyeAperture.with_stamp_windows`.
+:class:`AbstractPool` holds what every pool has (`count`, `n_max`, `key`) and what it does
+alike: the weights ``smooth_step(count - i)`` of its elements, per-element unit draws from
+``fold_in(key, i)``, and the static stamp window its elements are rasterised on.
 """
 
 from __future__ import annotations
 
+import abc
 from typing import Any
 
 import equinox as eqx
@@ -27,7 +16,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float, Key
 
-from invglare._core.checks import as_float, check_range
+from invglare._core.checks import as_float, as_key, check_range
 from invglare._core.grids import ApertureGrid
 from invglare.aperture.shapes.stamps import window_half_px
 from invglare.dynamics.noise import normal, uniform
@@ -104,3 +93,46 @@ def stamp_window(owner: str, grid: ApertureGrid, component) -> int:
         return window_half_px(bound, grid.pitch_mm)
     except ConfigError as err:
         raise ConfigError(f"{owner}: {err}") from err
+
+
+class AbstractPool(eqx.Module):
+    """A pool of `n_max` elements of which the first `count` (relaxed) are present.
+
+    **Fields** (the first three of every pool, in this order):
+
+    - `count`: number of elements (float, relaxed; ``0 <= count <= n_max``).
+    - `n_max`: size of the pool (static).
+    - `key`: `jax.random` key of the elements' variations (a typed key, raw ``uint32``
+      key data or an int seed; stored as a typed key).
+
+    A final subclass adds its own parameters and, last, the static stamp-window
+    overrides `stamp_bound_mm` and `stamp_half_px` (None: automatic), and says what one
+    element claims (:meth:`stamp_bound`) and how it is named in messages (`owner`).
+    """
+
+    count: Float[Array, ""] = eqx.field(converter=as_float)
+    n_max: int = eqx.field(static=True)
+    key: Key[Array, ""] = eqx.field(converter=as_key)
+    stamp_bound_mm: eqx.AbstractVar[float | None]
+    stamp_half_px: eqx.AbstractVar[int | None]
+
+    @property
+    @abc.abstractmethod
+    def owner(self) -> str:
+        """How messages name the pool (e.g. ``"upper lashes"``)."""
+
+    @abc.abstractmethod
+    def stamp_bound(self) -> Float[Array, ""]:
+        """Largest half-extent (mm) of the pixels one element claims."""
+
+    def __check_init__(self):
+        check_n_max(self.owner, self.n_max)
+        check_count(self.owner, self.count, self.n_max)
+
+    def weights(self) -> Float[Array, " n_max"]:
+        """Relaxed-count weight of each element of the pool."""
+        return relaxed_weights(self.count, self.n_max)
+
+    def window_half_px(self, grid: ApertureGrid) -> int:
+        """Static stamp-window half-size (px) of the pool's elements on `grid`."""
+        return stamp_window(self.owner, grid, self)

@@ -1,4 +1,10 @@
-"""Two ready-made eyes: :func:`daylight_eye` and :func:`night_eye`."""
+"""Two ready-made eyes: :func:`lashed_daylight_eye` and :func:`night_eye`.
+
+They are not the eyes of the bundled examples ``examples/eye_daylight.toml`` and
+``examples/eye_night.toml`` (those are built, and fitted, through
+:func:`invglare.config.eye.eye_from_config`); each docstring says how they differ. The
+benchmarks time these two.
+"""
 
 from __future__ import annotations
 
@@ -17,8 +23,44 @@ def _preset_key(key, tag: int) -> Key[Array, ""]:
     return jax.random.fold_in(as_key(key), tag)
 
 
-def daylight_eye(key: Key[Array, ""] | int = 0) -> EyeAperture:
-    """A bright-light eye: small pupil, slightly narrowed lids, lashes, a few cornea cells.
+# The parameters a preset gives its lashes and particles, in the order the presets list them
+# (the other parameters keep their defaults).
+_LASH_FIELDS = (
+    "count",
+    "n_max",
+    "angular_spread_deg",
+    "thickness_mm",
+    "length_mm",
+    "curvature_per_mm",
+    "root_span_mm",
+)
+_PARTICLE_FIELDS = (
+    "region",
+    "count",
+    "n_max",
+    "radius_mean_mm",
+    "radius_spread",
+    "region_radius_mm",
+)
+
+
+def _lashes(key, lid: str, *values) -> Eyelashes:
+    """A preset's row of lashes on `lid`, `values` as in ``_LASH_FIELDS``."""
+    tag = SEED_TAGS[f"lashes_{lid}"]
+    return Eyelashes(
+        key=_preset_key(key, tag), lid=lid, **dict(zip(_LASH_FIELDS, values, strict=True))
+    )
+
+
+def _particles(key, index: int, *values) -> Particles:
+    """A preset's `index`-th particle population, `values` as in ``_PARTICLE_FIELDS``."""
+    tag = SEED_TAGS["particles"] + index
+    return Particles(key=_preset_key(key, tag), **dict(zip(_PARTICLE_FIELDS, values, strict=True)))
+
+
+def lashed_daylight_eye(key: Key[Array, ""] | int = 0) -> EyeAperture:
+    """A bright-light eye: small pupil, slightly narrowed lids, both rows of lashes, a few
+    cornea cells.
 
     - pupil: 3.0 mm, round, centred;
     - lids: upper opening 2.2 mm, lower 3.0 mm (a mild squint), no tilt, curvature
@@ -31,44 +73,20 @@ def daylight_eye(key: Key[Array, ""] | int = 0) -> EyeAperture:
       over a disk of 5.5 mm.
 
     No gratings: the 1.5 mm pupil radius lies inside the lens cortex's annulus.
-    `key` seeds every component (``fold_in(key, tag)``, as :func:`eye_from_config`).
+    `key` seeds every component (``fold_in(key, tag)``, as
+    :func:`invglare.config.eye.eye_from_config` does with its seed).
+
+    The daylight eye of ``examples/eye_daylight.toml`` (the bundled fit's) has the same
+    pupil, upper lashes and cornea cells, but lids that cut into the pupil (openings 1.2
+    and 1.4 mm), no lower lashes and the seed 7; this one keeps the lids clear of the
+    pupil and hangs lashes from both, for the benchmarks' position-dependent masking.
     """
     return EyeAperture(
         pupil=Pupil(3.0),
         lids=Eyelids(2.2, 3.0, 0.0, 0.0, 0.04),
-        upper_lashes=Eyelashes(
-            count=40.0,
-            n_max=48,
-            key=_preset_key(key, SEED_TAGS["lashes_upper"]),
-            lid="upper",
-            angular_spread_deg=12.0,
-            thickness_mm=0.06,
-            length_mm=2.5,
-            curvature_per_mm=0.05,
-            root_span_mm=8.0,
-        ),
-        lower_lashes=Eyelashes(
-            count=20.0,
-            n_max=24,
-            key=_preset_key(key, SEED_TAGS["lashes_lower"]),
-            lid="lower",
-            angular_spread_deg=15.0,
-            thickness_mm=0.05,
-            length_mm=2.0,
-            curvature_per_mm=-0.05,
-            root_span_mm=7.0,
-        ),
-        particles=(
-            Particles(
-                count=60.0,
-                n_max=64,
-                key=_preset_key(key, SEED_TAGS["particles"]),
-                region="cornea",
-                radius_mean_mm=0.0075,
-                radius_spread=0.2,
-                region_radius_mm=5.5,
-            ),
-        ),
+        upper_lashes=_lashes(key, "upper", 40.0, 48, 12.0, 0.06, 2.5, 0.05, 8.0),
+        lower_lashes=_lashes(key, "lower", 20.0, 24, 15.0, 0.05, 2.0, -0.05, 7.0),
+        particles=(_particles(key, 0, "cornea", 60.0, 64, 0.0075, 0.2, 5.5),),
     )
 
 
@@ -85,41 +103,20 @@ def night_eye(key: Key[Array, ""] | int = 0) -> EyeAperture:
     - gratings: 200 (Ritschel et al.'s count), 5 lines each, spacing 40 um, width
       12 um, length 0.3 mm, annulus 2.0-3.5 mm.
 
-    `key` seeds every component (``fold_in(key, tag)``, as :func:`eye_from_config`).
+    `key` seeds every component (``fold_in(key, tag)``, as
+    :func:`invglare.config.eye.eye_from_config` does with its seed).
+
+    The night eye of ``examples/eye_night.toml`` (the bundled fit's) is smaller: a
+    6.5 mm pupil, no lashes, 150 lens-nucleus and 60 vitreous particles of radius 30 and 50 um,
+    40 gratings of 0.16 mm spacing, seed 11. This one has Ritschel et al.'s counts.
     """
     return EyeAperture(
         pupil=Pupil(7.0),
         lids=Eyelids(4.5, 4.0, 0.0, 0.0, 0.04),
-        upper_lashes=Eyelashes(
-            count=80.0,
-            n_max=96,
-            key=_preset_key(key, SEED_TAGS["lashes_upper"]),
-            lid="upper",
-            angular_spread_deg=10.0,
-            thickness_mm=0.08,
-            length_mm=3.0,
-            curvature_per_mm=0.05,
-            root_span_mm=9.0,
-        ),
+        upper_lashes=_lashes(key, "upper", 80.0, 96, 10.0, 0.08, 3.0, 0.05, 9.0),
         particles=(
-            Particles(
-                count=750.0,
-                n_max=750,
-                key=_preset_key(key, SEED_TAGS["particles"]),
-                region="lens_nucleus",
-                radius_mean_mm=0.01,
-                radius_spread=0.3,
-                region_radius_mm=2.5,
-            ),
-            Particles(
-                count=250.0,
-                n_max=250,
-                key=_preset_key(key, SEED_TAGS["particles"] + 1),
-                region="vitreous",
-                radius_mean_mm=0.02,
-                radius_spread=0.3,
-                region_radius_mm=6.0,
-            ),
+            _particles(key, 0, "lens_nucleus", 750.0, 750, 0.01, 0.3, 2.5),
+            _particles(key, 1, "vitreous", 250.0, 250, 0.02, 0.3, 6.0),
         ),
         gratings=Gratings(
             count=200.0,

@@ -32,6 +32,7 @@ from jaxtyping import Array, ArrayLike, Float
 from invglare._core.checks import as_float, check_positive, check_range, is_concrete
 from invglare._core.colour import rec709_luminance_np
 from invglare._core.grids import ApertureGrid
+from invglare.aperture._checks import check_finite
 from invglare.aperture.shapes.coverage import (
     capsule_edge_coverage,
     curved_edge_coverage,
@@ -44,15 +45,6 @@ ROLES = ("open", "block")
 
 # --------------------------------------------------------------------------------------
 # small helpers
-
-
-def _check_point(name: str, value) -> None:
-    """A 2-vector of finite numbers (x, y) in mm."""
-    if not is_concrete(value):
-        return
-    arr = np.asarray(value, dtype=float)
-    if arr.shape != (2,) or not np.all(np.isfinite(arr)):
-        raise PhysicsRangeError(f"{name} must be two finite numbers (x, y) in mm, got {arr!r}")
 
 
 def _safe_norm(dx: Array, dy: Array, fallback: tuple = (1.0, 0.0)) -> tuple[Array, Array, Array]:
@@ -129,7 +121,7 @@ class Disk(AbstractShape):
 
     def __check_init__(self):
         check_positive("disk diameter_mm", self.diameter_mm, "mm")
-        _check_point("disk center_mm", self.center_mm)
+        check_finite("disk center_mm", self.center_mm, (2,))
 
     def signed_distance_mm(self, grid: ApertureGrid) -> tuple[Array, Array, Array]:
         """Signed distance (mm, positive outside) and outward unit normal ``(nx, ny)``."""
@@ -166,7 +158,7 @@ class Ellipse(AbstractShape):
     def __check_init__(self):
         check_positive("ellipse diameter_mm", self.diameter_mm, "mm")
         check_range("ellipse ellipticity", self.ellipticity, 0.0, 1.0, hi_open=True)
-        _check_point("ellipse center_mm", self.center_mm)
+        check_finite("ellipse center_mm", self.center_mm, (2,))
 
     def _semi_axes(self) -> tuple[Array, Array]:
         a = 0.5 * self.diameter_mm
@@ -251,7 +243,7 @@ class RegularPolygon(AbstractShape):
             raise PhysicsRangeError(f"polygon n_blades must be >= 3, got {self.n_blades}")
         check_positive("polygon diameter_mm", self.diameter_mm, "mm")
         check_range("polygon rounding", self.rounding, 0.0, 1.0)
-        _check_point("polygon center_mm", self.center_mm)
+        check_finite("polygon center_mm", self.center_mm, (2,))
 
     def _edge_geometry(self) -> tuple[Array, Array, Array, Array]:
         """Edge normal angles (rad, shape (n,)), apothem, half edge length, sagitta (mm)."""
@@ -334,8 +326,8 @@ class Capsule(AbstractShape):
     role: str = eqx.field(static=True, default="block")
 
     def __check_init__(self):
-        _check_point("capsule start_mm", self.start_mm)
-        _check_point("capsule end_mm", self.end_mm)
+        check_finite("capsule start_mm", self.start_mm, (2,))
+        check_finite("capsule end_mm", self.end_mm, (2,))
         check_positive("capsule thickness_mm", self.thickness_mm, "mm")
 
     def _axis_frame(self, grid: ApertureGrid):
@@ -486,7 +478,7 @@ class ImageMask(AbstractShape):
             name = self.source if self.source is not None else "(array)"
             _validate_transmission(np.asarray(self.transmission), name)
         check_positive("image width_mm", self.width_mm, "mm")
-        _check_point("image center_mm", self.center_mm)
+        check_finite("image center_mm", self.center_mm, (2,))
 
     @classmethod
     def from_array(
