@@ -591,6 +591,30 @@ def test_config_unknown_key_lists_valid_keys():
         eye_from_config({"lids": {}})
 
 
+def test_config_names_bad_key_data_and_particle_lists():
+    pupil = {"diameter_mm": 3.0}
+    lashes = {"count": 2, "length_mm": 1.0}
+    for bad in ([1, -2], [1.5, 2], [], "7"):
+        with pytest.raises(ConfigError, match=r"lashes_upper\.key_data.*uint32"):
+            eye_from_config(
+                {"pupil": pupil, "lids": {}, "lashes_upper": {**lashes, "key_data": bad}}
+            )
+    with pytest.raises(ConfigError, match=r"lashes_upper\.key_data = \[1, 2, 3\].*jax\.random"):
+        eye_from_config(
+            {"pupil": pupil, "lids": {}, "lashes_upper": {**lashes, "key_data": [1, 2, 3]}}
+        )
+    with pytest.raises(ConfigError, match=r"model\.eye\.particles must be an array of tables"):
+        eye_from_config({"pupil": pupil, "particles": 3}, "model.eye")
+    with pytest.raises(ConfigError, match=r"model\.eye\.particles\[1\]\] must be a table"):
+        eye_from_config(
+            {"pupil": pupil, "particles": [{"region": "cornea", "count": 1}, 2]}, "model.eye"
+        )
+    with pytest.raises(ConfigError, match=r"pupil\.decentration_mm must be a pair of numbers"):
+        eye_from_config({"pupil": {**pupil, "decentration_mm": [0.1, "0"]}})
+    one = eye_from_config({"pupil": pupil, "particles": {"region": "cornea", "count": 1}})
+    assert len(one.particles) == 1 and one.particles[0].n_max == 1
+
+
 def test_config_round_trip_gives_the_same_transmission():
     grid = _grid()
     eye = _small_eye()
