@@ -28,6 +28,7 @@ from invglare.aperture.eye import (
     Gratings,
     Particles,
     Pupil,
+    daylight_eye,
     eye_to_config,
     lashed_daylight_eye,
     night_eye,
@@ -641,6 +642,9 @@ def test_config_round_trip_gives_the_same_transmission():
 
 def test_presets_have_their_documented_values():
     day, night = lashed_daylight_eye(KEY), night_eye(KEY)
+    with pytest.warns(DeprecationWarning, match="lashed_daylight_eye"):
+        old_name = daylight_eye(KEY)
+    assert eye_to_config(old_name) == eye_to_config(day)
     assert float(day.pupil.diameter_mm) == 3.0 and float(night.pupil.diameter_mm) == 7.0
     assert [p.region for p in night.particles] == ["lens_nucleus", "vitreous"]
     assert float(night.particles[0].count) == 750.0 and float(night.gratings.count) == 200.0

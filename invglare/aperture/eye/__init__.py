@@ -50,6 +50,7 @@ from invglare.aperture.eye.inclusions import Particles as Particles
 from invglare.aperture.eye.lashes import Eyelashes as Eyelashes
 from invglare.aperture.eye.pool import relaxed_weights as relaxed_weights
 from invglare.aperture.eye.pool import smooth_step as smooth_step
+from invglare.aperture.eye.presets import daylight_eye as daylight_eye
 from invglare.aperture.eye.presets import lashed_daylight_eye as lashed_daylight_eye
 from invglare.aperture.eye.presets import night_eye as night_eye
 from invglare.aperture.eye.pupil import LIDS as LIDS

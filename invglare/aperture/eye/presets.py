@@ -8,6 +8,8 @@ benchmarks time these two.
 
 from __future__ import annotations
 
+import warnings
+
 import jax
 from jaxtyping import Array, Key
 
@@ -88,6 +90,20 @@ def lashed_daylight_eye(key: Key[Array, ""] | int = 0) -> EyeAperture:
         lower_lashes=_lashes(key, "lower", 20.0, 24, 15.0, 0.05, 2.0, -0.05, 7.0),
         particles=(_particles(key, 0, "cornea", 60.0, 64, 0.0075, 0.2, 5.5),),
     )
+
+
+def daylight_eye(key: Key[Array, ""] | int = 0) -> EyeAperture:
+    """The old name of :func:`lashed_daylight_eye`, kept working with a `DeprecationWarning`.
+
+    Renamed because it is not the eye of ``examples/eye_daylight.toml``.
+    """
+    warnings.warn(
+        "daylight_eye() is now lashed_daylight_eye(): it is not the eye of "
+        "examples/eye_daylight.toml (build that one with invglare.config.eye.eye_from_config)",
+        DeprecationWarning,
+        stacklevel=2,
+    )
+    return lashed_daylight_eye(key)
 
 
 def night_eye(key: Key[Array, ""] | int = 0) -> EyeAperture:
