@@ -29,7 +29,6 @@ rounding; with ``rounding = 1`` (a circular iris) the two diameters coincide.
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
 from typing import Any
 
 import equinox as eqx
@@ -39,10 +38,12 @@ import numpy as np
 from jax.scipy.special import ndtri
 from jaxtyping import Array, ArrayLike, Float, UInt
 
-from invglare._core.checks import as_float, is_concrete, shown
-from invglare._core.grids import ApertureGrid, check_positive
-from invglare.aperture.coverage import strip_coverage
-from invglare.aperture.primitives import RegularPolygon
+from invglare._core.checks import as_float, check_positive, check_range
+from invglare._core.grids import ApertureGrid
+from invglare.aperture._checks import check_finite
+from invglare.aperture._plain import plain
+from invglare.aperture.shapes.coverage import strip_coverage
+from invglare.aperture.shapes.primitives import RegularPolygon
 from invglare.errors import ConfigError, PhysicsRangeError
 
 __all__ = [
@@ -57,28 +58,6 @@ __all__ = [
 
 # --------------------------------------------------------------------------------------
 # helpers
-
-
-def _check_range(
-    name: str, value, lo: float, hi: float, *, lo_open: bool = False, hi_open: bool = False
-) -> None:
-    """Raise `PhysicsRangeError` unless a concrete `value` lies in the interval (ends as given)."""
-    if not is_concrete(value):
-        return
-    arr = np.asarray(value, dtype=float)
-    bad = ~np.isfinite(arr)
-    bad |= (arr <= lo) if lo_open else (arr < lo)
-    bad |= (arr >= hi) if hi_open else (arr > hi)
-    if np.any(bad):
-        left, right = "(" if lo_open else "[", ")" if hi_open else "]"
-        raise PhysicsRangeError(
-            f"{name} must lie in {left}{lo:g}, {hi:g}{right}, got {shown(arr)}"
-        )
-
-
-def _check_finite(name: str, value) -> None:
-    if is_concrete(value) and not np.all(np.isfinite(np.asarray(value, dtype=float))):
-        raise PhysicsRangeError(f"{name} must be finite, got {shown(np.asarray(value))}")
 
 
 def _grid_dtype(grid: ApertureGrid):
@@ -191,8 +170,8 @@ class Diaphragm(eqx.Module):
             )
         check_positive("diaphragm f_number", self.f_number)
         check_positive("diaphragm focal_length_mm", self.focal_length_mm, "mm")
-        _check_range("diaphragm rounding", self.rounding, 0.0, 1.0)
-        _check_finite("diaphragm rotation_deg", self.rotation_deg)
+        check_range("diaphragm rounding", self.rounding, 0.0, 1.0)
+        check_finite("diaphragm rotation_deg", self.rotation_deg)
 
     def diameter_mm(self) -> Float[Array, ""]:
         """Equal-area (entrance pupil) diameter, ``focal_length_mm / f_number`` (mm)."""
@@ -290,12 +269,12 @@ class CrossScreen(eqx.Module):
                 f"cross-screen angles_deg must be one or more angles, got shape "
                 f"{self.angles_deg.shape}"
             )
-        _check_finite("cross-screen angles_deg", self.angles_deg)
+        check_finite("cross-screen angles_deg", self.angles_deg)
         check_positive("cross-screen spacing_mm", self.spacing_mm, "mm")
-        _check_range(
+        check_range(
             "cross-screen duty_cycle", self.duty_cycle, 0.0, 1.0, lo_open=True, hi_open=True
         )
-        _check_finite("cross-screen line_offset_mm", self.line_offset_mm)
+        check_finite("cross-screen line_offset_mm", self.line_offset_mm)
 
     @property
     def n_sets(self) -> int:
@@ -451,8 +430,8 @@ class Dust(eqx.Module):
         self.edge_softness = edge_softness
 
     def __check_init__(self):
-        _check_range("dust density", self.density, 0.0, 1.0)
-        _check_range("dust opacity", self.opacity, 0.0, 1.0)
+        check_range("dust density", self.density, 0.0, 1.0)
+        check_range("dust opacity", self.opacity, 0.0, 1.0)
         check_positive("dust feature_size_mm", self.feature_size_mm, "mm")
         if not isinstance(self.octaves, int) or isinstance(self.octaves, bool) or self.octaves < 1:
             raise PhysicsRangeError(f"dust octaves must be an integer >= 1, got {self.octaves!r}")
@@ -565,132 +544,13 @@ class CameraAperture(eqx.Module):
         """Diameter (mm) of the disk about the axis holding the opening (concrete values)."""
         return 2.0 * self.diaphragm.extent_radius_mm()
 
-    @classmethod
-    def from_config(cls, table: dict[str, Any], where: str = "camera") -> CameraAperture:
-        """Build a camera from a configuration table.
-
-        Keys (lengths in mm, angles in degrees)::
-
-            seed = 0                          # optional: the dust pattern's seed
-            [diaphragm]                       # required
-            n_blades = 6
-            f_number = 8.0
-            focal_length_mm = 50.0
-            rotation_deg = 0.0                # optional
-            rounding = 0.0                    # optional
-            [cross_screen]                    # optional
-            angles_deg = [0.0, 90.0]
-            spacing_mm = 0.2
-            duty_cycle = 0.1
-            line_offset_mm = 0.0              # optional
-            [dust]                            # optional
-            density = 0.05
-            opacity = 0.8
-            feature_size_mm = 0.5
-            octaves = 3                       # optional
-            edge_softness = 0.25              # optional
-
-        **Raises:** `ConfigError` for an unknown or missing key (naming it and listing
-        the valid keys) or a value of the wrong type; `PhysicsRangeError` (prefixed
-        with `where`) for out-of-range values.
-        """
-        _check_table(table, where, _TOP_KEYS, required=("diaphragm",))
-        seed = table.get("seed", 0)
-        if not isinstance(seed, int) or isinstance(seed, bool):
-            raise ConfigError(f"{where}.seed must be an integer, got {seed!r}")
-        try:
-            diaphragm = Diaphragm(**_read(table["diaphragm"], f"{where}.diaphragm", _DIAPHRAGM))
-            filt = None
-            if "cross_screen" in table:
-                args = _read(table["cross_screen"], f"{where}.cross_screen", _CROSS_SCREEN)
-                filt = CrossScreen(**args)
-            dust = None
-            if "dust" in table:
-                dust = Dust(**_read(table["dust"], f"{where}.dust", _DUST), key=seed)
-        except PhysicsRangeError as err:
-            raise PhysicsRangeError(f"{where}: {err}") from err
-        return cls(diaphragm, filt, dust)
-
 
 # --------------------------------------------------------------------------------------
 # configuration
 
-# key -> (type, required); "number" (int or float), "int", "numbers" (a list of numbers).
-_DIAPHRAGM = {
-    "n_blades": ("int", True),
-    "f_number": ("number", True),
-    "focal_length_mm": ("number", True),
-    "rotation_deg": ("number", False),
-    "rounding": ("number", False),
-}
-_CROSS_SCREEN = {
-    "angles_deg": ("numbers", True),
-    "spacing_mm": ("number", True),
-    "duty_cycle": ("number", True),
-    "line_offset_mm": ("number", False),
-}
-_DUST = {
-    "density": ("number", True),
-    "opacity": ("number", True),
-    "feature_size_mm": ("number", True),
-    "octaves": ("int", False),
-    "edge_softness": ("number", False),
-}
-_TOP_KEYS = ("diaphragm", "cross_screen", "dust", "seed")
-
-
-def _check_table(table: Any, where: str, valid: Sequence[str], required: Sequence[str]) -> None:
-    if not isinstance(table, dict):
-        raise ConfigError(f"{where} must be a table, got {table!r}")
-    for key in table:
-        if key not in valid:
-            raise ConfigError(f"{where}: unknown key {key!r}; valid keys: {', '.join(valid)}")
-    missing = [key for key in required if key not in table]
-    if missing:
-        raise ConfigError(
-            f"{where} needs {', '.join(repr(k) for k in missing)} "
-            f"(required keys: {', '.join(required)})"
-        )
-
-
-def _is_number(x: Any) -> bool:
-    return isinstance(x, int | float) and not isinstance(x, bool)
-
-
-def _read(table: Any, where: str, spec: dict[str, tuple[str, bool]]) -> dict[str, Any]:
-    """Check a sub-table against `spec` and return constructor arguments."""
-    _check_table(table, where, tuple(spec), [k for k, (_, req) in spec.items() if req])
-    out: dict[str, Any] = {}
-    for key, value in table.items():
-        kind = spec[key][0]
-        if kind == "number" and _is_number(value):
-            out[key] = float(value)
-        elif kind == "int" and isinstance(value, int) and not isinstance(value, bool):
-            out[key] = value
-        elif (
-            kind == "numbers"
-            and isinstance(value, list | tuple)
-            and len(value) > 0
-            and all(_is_number(v) for v in value)
-        ):
-            out[key] = tuple(float(v) for v in value)
-        else:
-            expected = {
-                "number": "a number",
-                "int": "an integer",
-                "numbers": "a non-empty list of numbers",
-            }[kind]
-            raise ConfigError(f"{where}.{key} must be {expected}, got {value!r}")
-    return out
-
-
-def _plain(value: Any) -> float | list[float]:
-    arr = np.asarray(value, dtype=float)
-    return float(arr) if arr.ndim == 0 else [float(v) for v in arr.ravel()]
-
 
 def camera_to_config(camera: CameraAperture) -> dict[str, Any]:
-    """The configuration table of a camera (inverse of :meth:`CameraAperture.from_config`).
+    """The configuration table of a camera (the inverse of the reader `camera_from_config`).
 
     Values are plain Python numbers and lists, ready for TOML / JSON. A dust layer
     made from a `jax.random` key (not an integer seed) cannot be written and raises
@@ -700,17 +560,17 @@ def camera_to_config(camera: CameraAperture) -> dict[str, Any]:
 
     ```python
     table = camera_to_config(camera)
-    same = CameraAperture.from_config(table)
+    same = invglare.config.camera.camera_from_config(table)
     ```
     """
     d = camera.diaphragm
     table: dict[str, Any] = {
         "diaphragm": {
             "n_blades": int(d.n_blades),
-            "f_number": _plain(d.f_number),
-            "focal_length_mm": _plain(d.focal_length_mm),
-            "rotation_deg": _plain(d.rotation_deg),
-            "rounding": _plain(d.rounding),
+            "f_number": plain(d.f_number),
+            "focal_length_mm": plain(d.focal_length_mm),
+            "rotation_deg": plain(d.rotation_deg),
+            "rounding": plain(d.rounding),
         }
     }
     if camera.filter is not None:
@@ -723,9 +583,9 @@ def camera_to_config(camera: CameraAperture) -> dict[str, Any]:
                 )
         table["cross_screen"] = {
             "angles_deg": [float(a) for a in np.asarray(f.angles_deg, dtype=float)],
-            "spacing_mm": _plain(f.spacing_mm),
-            "duty_cycle": _plain(f.duty_cycle),
-            "line_offset_mm": _plain(f.line_offset_mm),
+            "spacing_mm": plain(f.spacing_mm),
+            "duty_cycle": plain(f.duty_cycle),
+            "line_offset_mm": plain(f.line_offset_mm),
         }
     if camera.dust is not None:
         dust = camera.dust
@@ -736,9 +596,9 @@ def camera_to_config(camera: CameraAperture) -> dict[str, Any]:
             )
         table["seed"] = int(dust.seed)
         table["dust"] = {
-            "density": _plain(dust.density),
-            "opacity": _plain(dust.opacity),
-            "feature_size_mm": _plain(dust.feature_size_mm),
+            "density": plain(dust.density),
+            "opacity": plain(dust.opacity),
+            "feature_size_mm": plain(dust.feature_size_mm),
             "octaves": int(dust.octaves),
             "edge_softness": float(dust.edge_softness),
         }

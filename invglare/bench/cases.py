@@ -180,11 +180,11 @@ def _kakimoto_eye(n: int, **options):
 
     `options` go to `KakimotoGlare.build` (e.g. the masking).
     """
-    from invglare.aperture.eye import daylight_eye
+    from invglare.aperture.eye import lashed_daylight_eye
     from invglare.models.kakimoto import KakimotoGlare
 
     return KakimotoGlare.build(
-        daylight_eye(0),
+        lashed_daylight_eye(0),
         focal_length_mm=17.0,
         obstacle_distance_mm=8.0,
         npix=n,
@@ -329,7 +329,7 @@ CASES: tuple[Case, ...] = (
     Case(
         "kakimoto_eye_psf",
         "pipeline",
-        "KakimotoGlare of daylight_eye (fixed mask), 550 nm mono: N/2 raster + FFT to N",
+        "KakimotoGlare of lashed_daylight_eye (fixed mask), 550 nm mono: N/2 raster + FFT to N",
         _kakimoto_eye_forward,
     ),
     Case(

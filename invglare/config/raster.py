@@ -39,12 +39,12 @@ or a cross-screen filter) masked by a pupil (the eye's, or a diaphragm). They ta
     colour = "spectral"           # or "paper_rgb" (680/530/460 nm as R, G, B)
     max_light_angle_deg = 0.0
 
-    [model.eye]                   # see invglare.aperture.eye.eye_from_config
+    [model.eye]                   # see invglare.config.eye.eye_from_config
     seed = 7
     [model.eye.pupil]
     diameter_mm = 3.0
 
-    [model.camera]                # for kind = "camera": CameraAperture.from_config
+    [model.camera]                # kind = "camera": invglare.config.camera.camera_from_config
     [model.camera.diaphragm]
     n_blades = 6
     f_number = 8.0
@@ -52,7 +52,7 @@ or a cross-screen filter) masked by a pupil (the eye's, or a diaphragm). They ta
 
 The kind ``"veiling"`` (lens ghosts as Fourier series, :mod:`invglare.config.veiling`)
 has its own schema; see ``examples/veiling_cooke.toml``. The kind ``"temporal"`` (the dynamic
-eye of Ritschel et al., :func:`invglare.models.temporal.temporal_from_config`) likewise; see
+eye of Ritschel et al., :func:`invglare.config.temporal.temporal_from_config`) likewise; see
 ``examples/temporal_eye.toml``.
 
 Without ``[spectrum] wavelengths_nm`` a spectral model uses 380:770:32 and a paper_rgb
@@ -65,10 +65,11 @@ import dataclasses
 from pathlib import Path
 from typing import Any
 
-from invglare.aperture import Aperture, shape_from_config
-from invglare.aperture.camera import CameraAperture
-from invglare.aperture.eye import eye_from_config
+from invglare.aperture import Aperture
+from invglare.config.camera import camera_from_config
+from invglare.config.eye import eye_from_config
 from invglare.config.section import Section, check_sections
+from invglare.config.shapes import shape_from_config
 from invglare.errors import ConfigError
 from invglare.models.aperture_psf import AperturePSF
 from invglare.models.kakimoto import COLOURS, MASKINGS, KakimotoGlare
@@ -145,7 +146,7 @@ def read_raster_model(
             focal = model.get("focal_length_mm", float, 17.0)
             distance = model.get("obstacle_distance_mm", float, 8.0)
         else:
-            aperture = CameraAperture.from_config(table, "model.camera")
+            aperture = camera_from_config(table, "model.camera")
             focal = model.get("focal_length_mm", float, None)
             if focal is None:
                 focal = float(aperture.diaphragm.focal_length_mm)

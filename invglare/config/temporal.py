@@ -8,7 +8,7 @@ from typing import Any
 import jax
 import numpy as np
 
-from invglare.aperture.eye import eye_from_config
+from invglare.config.eye import eye_from_config
 from invglare.config.raster import KEEP_GRID, GridRequest, square_npix
 from invglare.config.section import Section, check_sections
 from invglare.dynamics import (
@@ -99,7 +99,7 @@ def temporal_from_config(
     [model.tonemap_params]         # keyword parameters of the tone map
     exposure = 1.0
     gamma = 2.2
-    [model.eye]                    # invglare.aperture.eye.eye_from_config
+    [model.eye]                    # invglare.config.eye.eye_from_config
     [model.dynamics.pupil]         # fields of PupilDynamics (and of Accommodation,
     hippus_amplitude_mm = 0.1      #   LensMesh, VitreousBody, LidMotion in
     [model.dynamics.lids]          #   [model.dynamics.accommodation], .lens, .vitreous,

@@ -38,7 +38,7 @@ from jaxtyping import Array, ArrayLike, Float
 
 from invglare._core.checks import as_float, is_concrete
 from invglare._core.grids import AngularGrid
-from invglare.aperture.coverage import curved_edge_coverage
+from invglare.aperture.shapes.coverage import curved_edge_coverage
 from invglare.errors import ConfigError, InputDataError, PhysicsRangeError
 
 __all__ = [

@@ -7,7 +7,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from helpers import assert_grad_matches_fd, x64
+from helpers import assert_grad_converges, x64
 from scipy.ndimage import map_coordinates
 
 from invglare._core.grids import ApertureGrid
@@ -19,6 +19,7 @@ from invglare.aperture.camera import (
     camera_to_config,
     polygon_area_factor,
 )
+from invglare.config.camera import camera_from_config
 from invglare.errors import ConfigError, PhysicsRangeError
 from invglare.optics.propagator import make_propagator
 
@@ -166,7 +167,11 @@ def test_dust_density_and_determinism():
     for density in (0.05, 0.3, 0.6):
         c = Dust(density, opacity=1.0, feature_size_mm=0.4, key=11).coverage(grid)
         covered.append(float(jnp.mean(c > 0.5)))
-    np.testing.assert_allclose(covered, [0.05, 0.3, 0.6], atol=0.05)
+    # The threshold is the normal quantile of 1 - density, and value noise is a little
+    # lighter-tailed than a normal: measured 0.0534, 0.3334, 0.6126 (key 11), and over
+    # keys 11-13 deviations of 2 to 11 %, so 15 % relative (an atol of 0.05 would accept
+    # twice the density at 0.05).
+    np.testing.assert_allclose(covered, [0.05, 0.3, 0.6], rtol=0.15)
     a = Dust(0.2, 0.7, 0.4, key=3).coverage(grid)
     b = Dust(0.2, 0.7, 0.4, key=jax.random.key(3)).coverage(grid)
     np.testing.assert_array_equal(a, b)
@@ -238,15 +243,59 @@ GRADIENT_CASES = {
         lambda x: CameraAperture(Diaphragm(6, 8.0, 40.0), dust=Dust(0.3, x, 0.8, key=2)),
         0.6,
     ),
+    "focal_length_mm": (lambda x: CameraAperture(Diaphragm(7, 8.0, x, rounding=0.1)), 40.0),
+    "line_offset_mm": (
+        lambda x: CameraAperture(
+            Diaphragm(6, 8.0, 40.0), filter=CrossScreen((20.0,), 0.4, 0.25, line_offset_mm=x)
+        ),
+        0.013,
+    ),
+    "dust_feature_size_mm": (
+        lambda x: CameraAperture(Diaphragm(6, 8.0, 40.0), dust=Dust(0.3, 0.8, x, key=2)),
+        0.8,
+    ),
 }
 
 
 @pytest.mark.parametrize("name", list(GRADIENT_CASES))
-def test_gradient_matches_finite_differences(name):
+def test_gradient_converges_to_finite_differences_float64(name):
+    """Every float parameter of the camera: autodiff against central differences at steps
+    5e-5 and 2.5e-5 of the parameter's scale, the finer within rtol 1e-5 (+ 1e-10
+    absolute: rounding of a loss near 1), and the discrepancy at least halved by the
+    halving (`helpers.assert_fd_converges`). Measured at twice these steps: about 4x per
+    halving where above rounding (f-number 2.5e-7 -> 6.2e-8, spacing 1.2e-6 -> 2.9e-7)."""
     build, x0 = GRADIENT_CASES[name]
     with x64():
-        ad, _ = assert_grad_matches_fd(_psf_loss(build), x0, eps=1e-6, rtol=1e-4, atol=1e-9)
+        ad, *_ = assert_grad_converges(
+            _psf_loss(build), x0, eps=5e-5 * max(abs(x0), 0.1), rtol=1e-5, atol=1e-10
+        )
     assert abs(ad) > 1e-6  # the parameter actually moves the PSF
+
+
+# Which case differentiates each float leaf of a camera with every component.
+_CASE_OF_LEAF = {
+    "diaphragm.f_number": "f_number",
+    "diaphragm.focal_length_mm": "focal_length_mm",
+    "diaphragm.rotation_deg": "rotation_deg",
+    "diaphragm.rounding": "rounding",
+    "filter.angles_deg": "cross_screen_angle",
+    "filter.spacing_mm": "spacing_mm",
+    "filter.duty_cycle": "duty_cycle",
+    "filter.line_offset_mm": "line_offset_mm",
+    "dust.density": "dust_density",
+    "dust.opacity": "dust_opacity",
+    "dust.feature_size_mm": "dust_feature_size_mm",
+}
+
+
+def test_every_float_leaf_has_a_gradient_case():
+    params = eqx.filter(_full_camera(), eqx.is_inexact_array)
+    paths = {
+        jax.tree_util.keystr(path).lstrip(".")
+        for path, _ in jax.tree_util.tree_flatten_with_path(params)[0]
+    }
+    assert paths == set(_CASE_OF_LEAF)
+    assert set(_CASE_OF_LEAF.values()) == set(GRADIENT_CASES)
 
 
 # ------------------------------------------------------------------------------ transformations
@@ -292,13 +341,16 @@ def test_jit_equals_eager_and_vmap_equals_loop():
         (lambda: Diaphragm(6, 0.0, 50.0), "f_number must be finite and > 0, got 0"),
         (lambda: Diaphragm(6, -2.8, 50.0), "f_number.*got -2.8"),
         (lambda: Diaphragm(6, 2.8, -50.0), "focal_length_mm.*got -50"),
-        (lambda: Diaphragm(6, 2.8, 50.0, rounding=1.5), "rounding must lie in.*got 1.5"),
-        (lambda: CrossScreen((0.0,), 0.2, 0.0), r"duty_cycle must lie in \(0, 1\), got 0"),
-        (lambda: CrossScreen((0.0,), 0.2, 1.0), r"duty_cycle must lie in \(0, 1\), got 1"),
+        (
+            lambda: Diaphragm(6, 2.8, 50.0, rounding=1.5),
+            "rounding must be finite, >= 0 and <= 1, got 1.5",
+        ),
+        (lambda: CrossScreen((0.0,), 0.2, 0.0), "duty_cycle must be finite, > 0 and < 1, got 0"),
+        (lambda: CrossScreen((0.0,), 0.2, 1.0), "duty_cycle must be finite, > 0 and < 1, got 1"),
         (lambda: CrossScreen((0.0,), -0.2, 0.5), "spacing_mm must be finite and > 0, got -0.2"),
         (lambda: CrossScreen((), 0.2, 0.5), "one or more angles"),
-        (lambda: Dust(1.5, 0.5, 0.3), "density must lie in.*got 1.5"),
-        (lambda: Dust(0.5, -0.1, 0.3), "opacity must lie in.*got -0.1"),
+        (lambda: Dust(1.5, 0.5, 0.3), "density must be finite, >= 0 and <= 1, got 1.5"),
+        (lambda: Dust(0.5, -0.1, 0.3), "opacity must be finite, >= 0 and <= 1, got -0.1"),
         (lambda: Dust(0.5, 0.5, 0.0), "feature_size_mm.*got 0"),
     ],
 )
@@ -322,12 +374,12 @@ def test_config_round_trip():
     camera = _full_camera()
     table = camera_to_config(camera)
     assert table["seed"] == 9 and table["cross_screen"]["angles_deg"] == [0.0, 60.0, 120.0]
-    again = CameraAperture.from_config(table)
+    again = camera_from_config(table)
     assert camera_to_config(again) == table
     grid = ApertureGrid.from_width(48, 1.05 * camera.extent_mm())
     transmission = eqx.filter_jit(lambda c: c.transmission(grid))
     np.testing.assert_array_equal(transmission(again), transmission(camera))
-    minimal = CameraAperture.from_config(
+    minimal = camera_from_config(
         {"diaphragm": {"n_blades": 6, "f_number": 2, "focal_length_mm": 50}}
     )
     assert minimal.filter is None and minimal.dust is None
@@ -341,9 +393,9 @@ def test_config_round_trip():
         (
             {"diaphragm": {"n_blades": 6, "f_number": 2, "focal_length_mm": 50, "blades": 3}},
             ConfigError,
-            "camera.diaphragm: unknown key 'blades'; valid keys: n_blades, f_number",
+            r"\[camera.diaphragm\] has unknown key 'blades'; valid keys: n_blades, f_number",
         ),
-        ({"cross_screen": {}}, ConfigError, "needs 'diaphragm'"),
+        ({"cross_screen": {}}, ConfigError, "needs the key 'diaphragm'"),
         (
             {"diaphragm": {"n_blades": 6, "f_number": "2", "focal_length_mm": 50}},
             ConfigError,
@@ -371,7 +423,7 @@ def test_config_round_trip():
 )
 def test_bad_config_names_the_key(table, error, message):
     with pytest.raises(error, match=message):
-        CameraAperture.from_config(table)
+        camera_from_config(table)
 
 
 def test_dust_from_a_key_cannot_be_written():

@@ -8,7 +8,7 @@ scatter-added into one image. The cost is ``O(count * k**2 + n**2)``: the ``k``
 of an element depends on its size in pixels, not on `n`.
 
 **Combining occluders.** Each element `i` has a coverage ``c_i`` (the analytic
-soft coverage of :mod:`invglare.aperture.primitives`) and a weight ``w_i`` in
+soft coverage of :mod:`invglare.aperture.shapes.primitives`) and a weight ``w_i`` in
 ``[0, 1]`` (the relaxed-count weight). Occluders are independent, as in
 :func:`invglare.aperture.occlude`: the transmission is ``prod(1 - w_i c_i)``.
 The product is accumulated as a sum of logarithms, ``log(1 - w_i c_i)`` clamped
@@ -48,7 +48,7 @@ from jaxtyping import Array, ArrayLike, Float
 from invglare._core.checks import is_concrete
 from invglare._core.grids import ApertureGrid
 from invglare._core.xla import materialise
-from invglare.aperture.primitives import Capsule, Disk
+from invglare.aperture.shapes.primitives import Capsule, Disk
 from invglare.errors import ConfigError
 
 #: Reach (px) of a window beyond the element's half-extent: 0.5 px for rounding the anchor

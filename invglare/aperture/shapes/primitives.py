@@ -29,9 +29,11 @@ import numpy as np
 from jax.scipy.ndimage import map_coordinates
 from jaxtyping import Array, ArrayLike, Float
 
-from invglare._core.checks import as_float, is_concrete
-from invglare._core.grids import ApertureGrid, check_positive
-from invglare.aperture.coverage import (
+from invglare._core.checks import as_float, check_positive, check_range, is_concrete
+from invglare._core.colour import rec709_luminance_np
+from invglare._core.grids import ApertureGrid
+from invglare.aperture._checks import check_finite
+from invglare.aperture.shapes.coverage import (
     capsule_edge_coverage,
     curved_edge_coverage,
 )
@@ -40,33 +42,9 @@ from invglare.errors import ConfigError, InputDataError, PhysicsRangeError
 #: The two roles a shape can play in an aperture.
 ROLES = ("open", "block")
 
-#: Rec. 709 luma weights, used to turn an RGB aperture image into one transmission.
-_LUMA = np.array([0.2126, 0.7152, 0.0722])
-
 
 # --------------------------------------------------------------------------------------
 # small helpers
-
-
-def _check_interval(name: str, value, lo: float, hi: float, hi_open: bool = False) -> None:
-    """Raise `PhysicsRangeError` unless concrete `value` lies in [lo, hi] (or [lo, hi))."""
-    if not is_concrete(value):
-        return
-    arr = np.asarray(value, dtype=float)
-    bad = ~np.isfinite(arr) | (arr < lo) | ((arr >= hi) if hi_open else (arr > hi))
-    if np.any(bad):
-        shown = f"{arr.item():g}" if arr.size == 1 else np.array2string(arr, precision=4)
-        bracket = ")" if hi_open else "]"
-        raise PhysicsRangeError(f"{name} must lie in [{lo:g}, {hi:g}{bracket}, got {shown}")
-
-
-def _check_point(name: str, value) -> None:
-    """A 2-vector of finite numbers (x, y) in mm."""
-    if not is_concrete(value):
-        return
-    arr = np.asarray(value, dtype=float)
-    if arr.shape != (2,) or not np.all(np.isfinite(arr)):
-        raise PhysicsRangeError(f"{name} must be two finite numbers (x, y) in mm, got {arr!r}")
 
 
 def _safe_norm(dx: Array, dy: Array, fallback: tuple = (1.0, 0.0)) -> tuple[Array, Array, Array]:
@@ -79,7 +57,8 @@ def _safe_norm(dx: Array, dy: Array, fallback: tuple = (1.0, 0.0)) -> tuple[Arra
     ok = r2 > 0.0
     r_safe = jnp.sqrt(jnp.where(ok, r2, 1.0))
     r = jnp.where(ok, r_safe, 0.0)
-    inv_r = 1.0 / r_safe  # one division, not two (see the note in invglare.aperture.coverage)
+    # One division, not two (see the note in invglare.aperture.shapes.coverage).
+    inv_r = 1.0 / r_safe
     ux = jnp.where(ok, dx * inv_r, fallback[0])
     uy = jnp.where(ok, dy * inv_r, fallback[1])
     return r, ux, uy
@@ -142,7 +121,7 @@ class Disk(AbstractShape):
 
     def __check_init__(self):
         check_positive("disk diameter_mm", self.diameter_mm, "mm")
-        _check_point("disk center_mm", self.center_mm)
+        check_finite("disk center_mm", self.center_mm, (2,))
 
     def signed_distance_mm(self, grid: ApertureGrid) -> tuple[Array, Array, Array]:
         """Signed distance (mm, positive outside) and outward unit normal ``(nx, ny)``."""
@@ -178,8 +157,8 @@ class Ellipse(AbstractShape):
 
     def __check_init__(self):
         check_positive("ellipse diameter_mm", self.diameter_mm, "mm")
-        _check_interval("ellipse ellipticity", self.ellipticity, 0.0, 1.0, hi_open=True)
-        _check_point("ellipse center_mm", self.center_mm)
+        check_range("ellipse ellipticity", self.ellipticity, 0.0, 1.0, hi_open=True)
+        check_finite("ellipse center_mm", self.center_mm, (2,))
 
     def _semi_axes(self) -> tuple[Array, Array]:
         a = 0.5 * self.diameter_mm
@@ -263,8 +242,8 @@ class RegularPolygon(AbstractShape):
         if self.n_blades < 3:
             raise PhysicsRangeError(f"polygon n_blades must be >= 3, got {self.n_blades}")
         check_positive("polygon diameter_mm", self.diameter_mm, "mm")
-        _check_interval("polygon rounding", self.rounding, 0.0, 1.0)
-        _check_point("polygon center_mm", self.center_mm)
+        check_range("polygon rounding", self.rounding, 0.0, 1.0)
+        check_finite("polygon center_mm", self.center_mm, (2,))
 
     def _edge_geometry(self) -> tuple[Array, Array, Array, Array]:
         """Edge normal angles (rad, shape (n,)), apothem, half edge length, sagitta (mm)."""
@@ -347,8 +326,8 @@ class Capsule(AbstractShape):
     role: str = eqx.field(static=True, default="block")
 
     def __check_init__(self):
-        _check_point("capsule start_mm", self.start_mm)
-        _check_point("capsule end_mm", self.end_mm)
+        check_finite("capsule start_mm", self.start_mm, (2,))
+        check_finite("capsule end_mm", self.end_mm, (2,))
         check_positive("capsule thickness_mm", self.thickness_mm, "mm")
 
     def _axis_frame(self, grid: ApertureGrid):
@@ -457,7 +436,7 @@ def _image_to_unit(raw: np.ndarray, source: str) -> np.ndarray:
             "8/16-bit integers or floats in [0, 1]"
         )
     if img.ndim == 3 and img.shape[-1] in (3, 4):
-        img = img[..., :3] @ _LUMA
+        img = rec709_luminance_np(img[..., :3])
     elif img.ndim == 3 and img.shape[-1] in (1, 2):  # grey or grey + alpha
         img = img[..., 0]
     return img
@@ -499,7 +478,7 @@ class ImageMask(AbstractShape):
             name = self.source if self.source is not None else "(array)"
             _validate_transmission(np.asarray(self.transmission), name)
         check_positive("image width_mm", self.width_mm, "mm")
-        _check_point("image center_mm", self.center_mm)
+        check_finite("image center_mm", self.center_mm, (2,))
 
     @classmethod
     def from_array(

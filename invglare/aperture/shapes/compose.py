@@ -16,7 +16,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float
 
 from invglare._core.grids import ApertureGrid
-from invglare.aperture.primitives import AbstractShape
+from invglare.aperture.shapes.primitives import AbstractShape
 from invglare.errors import ConfigError
 
 

@@ -1,0 +1,158 @@
+"""The reader of eye tables (``[model.eye]``): :func:`eye_from_config`.
+
+The keys are those of :mod:`invglare.aperture.eye.schema`, whose
+:func:`~invglare.aperture.eye.eye_to_config` writes what this reads.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import jax
+
+from invglare.aperture.eye import EyeAperture, Eyelashes, Eyelids, Gratings, Particles, Pupil
+from invglare.aperture.eye.schema import (
+    EYE_KEYS,
+    GRATING_KEYS,
+    LASH_KEYS,
+    LIDS_KEYS,
+    PARTICLE_KEYS,
+    PUPIL_KEYS,
+    SEED_TAGS,
+)
+from invglare.config.section import Section
+from invglare.errors import ConfigError
+
+# How a value of each kind of key is read (see the schema); `None` as the default: absent,
+# the constructor's default applies.
+_READERS = {
+    "number": lambda sec, key, default: sec.get(key, float, default),
+    "int": lambda sec, key, default: sec.get(key, int, default),
+    "str": lambda sec, key, default: sec.get(key, str, default),
+    "point": Section.point,
+    "key": Section.key_data,
+}
+
+
+def eye_from_config(table: dict[str, Any], where: str = "eye") -> EyeAperture:
+    """Build an :class:`~invglare.aperture.eye.EyeAperture` from a TOML-like table.
+
+    **Arguments:**
+
+    - `table`: a dict with the sub-tables below; only `pupil` is required.
+    - `where`: where the table sits in the configuration (e.g. ``"model.eye"``), for
+      error messages.
+
+    ```toml
+    [eye]
+    seed = 7                     # int; derives every component's key (default 0)
+    [eye.pupil]                  # diameter_mm (required), ellipticity, rotation_deg,
+    diameter_mm = 6.0            #   decentration_mm = [x, y]
+    [eye.lids]                   # upper/lower_opening_mm, upper/lower_tilt_deg,
+    upper_opening_mm = 4.0       #   curvature_per_mm
+    [eye.lashes_upper]           # count (required), n_max, mean_angle_deg,
+    count = 60                   #   angular_spread_deg, spacing_jitter, thickness_mm,
+                                 #   length_mm, curvature_per_mm, root_span_mm,
+                                 #   length_spread, thickness_spread, segments, key_data
+    [eye.lashes_lower]           # as lashes_upper
+    [[eye.particles]]            # region and count (required), n_max, radius_mean_mm,
+    region = "lens_nucleus"      #   radius_spread, region_radius_mm, key_data
+    count = 750
+    [eye.gratings]               # count (required), n_max, spacing_mm,
+    count = 200                  #   line_thickness_mm, line_length_mm, inner_radius_mm,
+                                 #   outer_radius_mm, lines_per_grating, key_data
+    ```
+
+    `n_max` defaults to the count rounded up. A component's key is
+    ``fold_in(key(seed), tag)`` unless it gives `key_data` (what
+    :func:`~invglare.aperture.eye.eye_to_config` writes, so that a written eye is
+    reproduced exactly).
+
+    **Returns:** the eye.
+
+    **Raises:** `ConfigError` naming the key for an unknown key (listing the valid
+    ones), a missing key or a value of the wrong type; `PhysicsRangeError` for
+    values out of range, prefixed with where they are.
+
+    **Example:**
+
+    ```python
+    eye = eye_from_config(load_toml("examples/eye_daylight.toml")["model"]["eye"], "model.eye")
+    ```
+    """
+    top = Section(table, where)
+    top.only(*EYE_KEYS)
+    seed = top.get("seed", int, 0)
+    root = jax.random.key(seed)
+    pupil = _component(top.section("pupil", required=True), Pupil, PUPIL_KEYS, ("diameter_mm",))
+    lids_sec = top.section("lids")
+    lids = None if lids_sec is None else _component(lids_sec, Eyelids, LIDS_KEYS, ())
+    lashes = {}
+    for name, lid in (("lashes_upper", "upper"), ("lashes_lower", "lower")):
+        sec = top.section(name)
+        lashes[lid] = None
+        if sec is not None:
+            key = jax.random.fold_in(root, SEED_TAGS[name])
+            lashes[lid] = _component(sec, Eyelashes, LASH_KEYS, ("count",), key, lid=lid)
+    particles = tuple(
+        _component(
+            sec,
+            Particles,
+            PARTICLE_KEYS,
+            ("region", "count"),
+            jax.random.fold_in(root, SEED_TAGS["particles"] + i),
+        )
+        for i, sec in enumerate(top.sections("particles"))
+    )
+    gratings_sec, gratings = top.section("gratings"), None
+    if gratings_sec is not None:
+        key = jax.random.fold_in(root, SEED_TAGS["gratings"])
+        gratings = _component(gratings_sec, Gratings, GRATING_KEYS, ("count",), key)
+    top.finish()
+    return top.build(
+        EyeAperture,
+        pupil=pupil,
+        lids=lids,
+        upper_lashes=lashes["upper"],
+        lower_lashes=lashes["lower"],
+        particles=particles,
+        gratings=gratings,
+    )
+
+
+def _component(
+    sec: Section,
+    cls: type,
+    keys: dict[str, str],
+    required: tuple[str, ...],
+    key: Any = None,
+    **fixed: Any,
+) -> Any:
+    """One component of the eye from its table (`key`: its key unless the table has one).
+
+    A pool's `n_max` defaults to its count rounded up.
+    """
+    sec.only(*keys)
+    args = dict(fixed)
+    for name, kind in keys.items():
+        value = _READERS[kind](sec, name, ... if name in required else None)
+        if value is not None:
+            args[name] = value
+    sec.finish()
+    if "key_data" in args:
+        key = _wrap_key(args.pop("key_data"), f"{sec.where}.key_data")
+    if key is not None:
+        args["key"] = key
+    if "count" in args and "n_max" not in args:
+        args["n_max"] = max(1, math.ceil(args["count"]))
+    return sec.build(cls, **args)
+
+
+def _wrap_key(data, where: str) -> jax.Array:
+    try:
+        return jax.random.wrap_key_data(data)
+    except (TypeError, ValueError) as err:
+        raise ConfigError(
+            f"{where} = {data.tolist()} is not the data of a jax.random key ({err})"
+        ) from err
