@@ -53,7 +53,7 @@ from invglare.optics.paraxial import (
     transfer_matrix,
 )
 
-EXAMPLES = Path(__file__).resolve().parent.parent / "examples"
+EXAMPLES = Path(__file__).resolve().parents[2] / "examples"
 
 
 def series_coefficients_fft(image: np.ndarray, n: int) -> SeriesCoefficients:
