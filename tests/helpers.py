@@ -27,3 +27,45 @@ def assert_grad_matches_fd(
     fd = central_difference(f, x, eps)
     np.testing.assert_allclose(ad, fd, rtol=rtol, atol=atol)
     return ad, fd
+
+
+def assert_grad_converges(
+    f: Callable,
+    x: float,
+    eps: float,
+    *,
+    grad: float | None = None,
+    shrink: float = 4.0,
+    rtol: float = 1e-5,
+    atol: float = 1e-10,
+    err_msg: str = "",
+) -> tuple[float, float, float]:
+    """Assert autodiff d f/dx equals central differences at two steps, converging.
+
+    The central difference at `eps` and at `eps / shrink` must each lie within
+    ``atol + rtol * |d f/dx|`` of autodiff, and the smaller step must be closer: its
+    truncation error is ``shrink²`` times smaller, so it must at least halve the larger
+    step's error, unless that error already sits at the rounding floor, where no step can
+    show convergence (``100 ulp * |f| / step``, the float64 rounding of f's values
+    amplified by the division by the step). Pick `eps` where truncation shows (around
+    1e-3 to 1e-4 of the value's scale) so that the check has something to see.
+
+    `grad` is autodiff's value when the caller has it already (a shared compiled
+    gradient); otherwise it is ``jax.grad(f)``. Run under `x64()`.
+    Returns ``(autodiff, fd at eps, fd at eps / shrink)``.
+    """
+    ad = float(jax.grad(f)(jnp.float64(x))) if grad is None else float(grad)
+    steps = (eps, eps / shrink)
+    fds = [central_difference(f, x, h) for h in steps]
+    errors = [abs(fd - ad) for fd in fds]
+    tol = atol + rtol * abs(ad)
+    value = abs(float(f(jnp.float64(x))))
+    floor = 100 * np.finfo(np.float64).eps * value / steps[1]
+    msg = (
+        f"{err_msg}: autodiff {ad:.10g}, central differences {fds[0]:.10g} (step {steps[0]:.3g}), "
+        f"{fds[1]:.10g} (step {steps[1]:.3g}); errors {errors[0]:.3g}, {errors[1]:.3g}, "
+        f"tolerance {tol:.3g}, rounding floor {floor:.3g}"
+    )
+    assert errors[0] <= tol and errors[1] <= tol, msg
+    assert errors[1] <= max(0.5 * errors[0], floor), "not converging: " + msg
+    return ad, fds[0], fds[1]
