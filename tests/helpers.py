@@ -43,12 +43,14 @@ def assert_grad_converges(
     """Assert autodiff d f/dx equals central differences at two steps, converging.
 
     The central difference at `eps` and at `eps / shrink` must each lie within
-    ``atol + rtol * |d f/dx|`` of autodiff, and the smaller step must be closer: its
-    truncation error is ``shrink²`` times smaller, so it must at least halve the larger
-    step's error, unless that error already sits at the rounding floor, where no step can
-    show convergence (``100 ulp * |f| / step``, the float64 rounding of f's values
-    amplified by the division by the step). Pick `eps` where truncation shows (around
-    1e-3 to 1e-4 of the value's scale) so that the check has something to see.
+    ``atol + rtol * |d f/dx|`` of autodiff, and the differences must converge: the
+    smaller step's truncation error is ``shrink²`` times smaller, so it must at least
+    halve the larger step's error, unless there is no truncation left to see: the smaller
+    step's error at the rounding floor, or both differences equal to it (f quadratic in
+    x, or smooth beyond what the steps resolve). The floor is ``100 ulp * |f| / step``,
+    the float64 rounding of f's values amplified by the division by the step (the noise
+    measured on the veiling losses was about 6 ulp of f). Pick `eps` where truncation shows
+    (around 1e-3 to 1e-4 of the value's scale) so that the check has something to see.
 
     `grad` is autodiff's value when the caller has it already (a shared compiled
     gradient); otherwise it is ``jax.grad(f)``. Run under `x64()`.
@@ -67,5 +69,6 @@ def assert_grad_converges(
         f"tolerance {tol:.3g}, rounding floor {floor:.3g}"
     )
     assert errors[0] <= tol and errors[1] <= tol, msg
-    assert errors[1] <= max(0.5 * errors[0], floor), "not converging: " + msg
+    converged = abs(fds[0] - fds[1]) <= floor
+    assert errors[1] <= max(0.5 * errors[0], floor) or converged, "not converging: " + msg
     return ad, fds[0], fds[1]
