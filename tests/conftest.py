@@ -9,7 +9,7 @@ os.environ.setdefault("JAX_PLATFORMS", "cpu")
 # Many tests compile the same programs through fresh closures (a model built again, a new
 # jitted loss), which JAX's in-memory cache cannot recognise; the persistent cache keys on
 # the program itself, and is shared by the xdist workers. Measured on tests/test_fit.py and
-# tests/test_kakimoto.py with 2 workers: 228 s without it, 190-207 s starting empty, 152 s
+# tests/models/test_kakimoto.py with 2 workers: 228 s without it, 190-207 s starting empty, 152 s
 # on a second run (the cache stays in the temp folder).
 # INVGLARE_JAX_CACHE= (empty) turns it off; a path puts it elsewhere.
 _cache = os.environ.get(

@@ -61,11 +61,45 @@ def assert_fd_converges(
 
 
 def assert_grad_converges(
-    f: Callable, x: float, eps: float, rtol: float = 1e-5, atol: float = 0.0
+    f: Callable,
+    x: float,
+    eps: float,
+    *,
+    grad: float | None = None,
+    shrink: float = 4.0,
+    rtol: float = 1e-5,
+    atol: float = 1e-10,
+    err_msg: str = "",
 ) -> tuple[float, float, float]:
-    """Autodiff ``d f/dx`` checked by :func:`assert_fd_converges`.
+    """Assert autodiff d f/dx equals central differences at two steps, converging.
 
-    Returns (autodiff, coarse difference, fine difference).
+    The central difference at `eps` and at `eps / shrink` must each lie within
+    ``atol + rtol * |d f/dx|`` of autodiff, and the differences must converge: the
+    smaller step's truncation error is ``shrink²`` times smaller, so it must at least
+    halve the larger step's error, unless there is no truncation left to see: the smaller
+    step's error at the rounding floor, or both differences equal to it (f quadratic in
+    x, or smooth beyond what the steps resolve). The floor is ``100 ulp * |f| / step``,
+    the float64 rounding of f's values amplified by the division by the step (the noise
+    measured on the veiling losses was about 6 ulp of f). Pick `eps` where truncation shows
+    (around 1e-3 to 1e-4 of the value's scale) so that the check has something to see.
+
+    `grad` is autodiff's value when the caller has it already (a shared compiled
+    gradient); otherwise it is ``jax.grad(f)``. Run under `x64()`.
+    Returns ``(autodiff, fd at eps, fd at eps / shrink)``.
     """
-    ad = float(jax.grad(f)(jnp.float64(x)))
-    return (ad, *assert_fd_converges(f, x, ad, eps, rtol, atol))
+    ad = float(jax.grad(f)(jnp.float64(x))) if grad is None else float(grad)
+    steps = (eps, eps / shrink)
+    fds = [central_difference(f, x, h) for h in steps]
+    errors = [abs(fd - ad) for fd in fds]
+    tol = atol + rtol * abs(ad)
+    value = abs(float(f(jnp.float64(x))))
+    floor = 100 * np.finfo(np.float64).eps * value / steps[1]
+    msg = (
+        f"{err_msg}: autodiff {ad:.10g}, central differences {fds[0]:.10g} (step {steps[0]:.3g}), "
+        f"{fds[1]:.10g} (step {steps[1]:.3g}); errors {errors[0]:.3g}, {errors[1]:.3g}, "
+        f"tolerance {tol:.3g}, rounding floor {floor:.3g}"
+    )
+    assert errors[0] <= tol and errors[1] <= tol, msg
+    converged = abs(fds[0] - fds[1]) <= floor
+    assert errors[1] <= max(0.5 * errors[0], floor) or converged, "not converging: " + msg
+    return ad, fds[0], fds[1]

@@ -10,7 +10,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from helpers import assert_grad_matches_fd, x64
+from helpers import assert_grad_converges, x64
 
 from invglare.errors import ConfigError, InputDataError, PhysicsRangeError
 from invglare.files import encode_srgb, read_exr
@@ -416,7 +416,8 @@ def test_grad_convolution_wrt_psf_magnification_fd_rtol_1e5():
         def f(s):
             return jnp.sum(weights * convolve_psf(image, scale_psf(psf, s)))
 
-        assert_grad_matches_fd(f, 1.23, eps=1e-6, rtol=1e-5)
+        # At a step of 1e-3 of s the truncation error is 3.7e-6 of the derivative (measured).
+        assert_grad_converges(jax.jit(f), 1.23, 1.23e-3, rtol=1e-5)
 
 
 @pytest.mark.parametrize(
@@ -442,8 +443,10 @@ def test_grad_tonemaps_wrt_parameters_fd_rtol_1e5(name, fn, x0):
         rng = np.random.default_rng(5)
         hdr = rng.random((7, 7, 3)) * np.logspace(0, 4, 7)[None, :, None]
         weights = rng.random(fn(jnp.float64(x0), hdr).shape)
-        assert_grad_matches_fd(
-            lambda p: jnp.sum(weights * fn(p, hdr)), x0, eps=1e-6 * x0, rtol=1e-5
+        # Steps of 1e-3 of each value: truncation errors up to 2e-6 of the derivative
+        # (measured; none where the output is linear in the parameter).
+        assert_grad_converges(
+            jax.jit(lambda p: jnp.sum(weights * fn(p, hdr))), x0, 1e-3 * x0, rtol=1e-5, err_msg=name
         )
 
 

@@ -9,7 +9,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from helpers import x64
+from helpers import assert_grad_converges, x64
 
 from invglare.aperture.eye import EyeAperture, Eyelashes, Eyelids, Gratings, Particles, Pupil
 from invglare.config.temporal import temporal_from_config
@@ -26,7 +26,7 @@ from invglare.errors import ConfigError, InputDataError, PhysicsRangeError
 from invglare.models.kakimoto import KakimotoGlare
 from invglare.models.temporal import TemporalGlare, frame_luminance_cd_m2
 from invglare.optics.fresnel import fresnel_mft
-from invglare.optics.spectral import psf_to_xyz, xyz_to_rgb
+from invglare.optics.spectral import _xyz_to_rgb_matrix, psf_to_xyz, scale_psf, xyz_to_rgb
 from invglare.render.temporal_frames import frame_convolver, render_frame, render_sequence
 
 NPIX = 64
@@ -123,6 +123,38 @@ def weights(shape, seed=0):
 # ------------------------------------------------------------------------------ frames
 
 
+def luminance_row(model: TemporalGlare) -> np.ndarray:
+    """Y of the model's linear RGB: the middle row of its colourspace's RGB -> XYZ."""
+    return np.linalg.inv(_xyz_to_rgb_matrix(model.spectrum.colourspace))[1]
+
+
+SCALED_SUM = jax.jit(lambda psf, factor: jnp.sum(scale_psf(psf, factor)))
+
+
+def expected_luminance_sum(model: TemporalGlare, state) -> float:
+    """The Y a frame's PSF sums to, derived apart from the model's pipeline.
+
+    The FFT is as wide as the PSF (``fft_npix == npix``), so the monochrome PSF covers the
+    whole plane and sums to 1 (Parseval; here from a float64 numpy FFT of the frame's
+    aperture times the Fresnel term). The copy at each wavelength, magnified by
+    ``lambda / 575``, keeps what its bilinear resampling leaves in the field (a magnified
+    copy loses its rim); the spectrum's Y weights sum to 1.
+    """
+    prop, spec = model.propagator, model.spectrum
+    assert prop.fft_npix == prop.output.npix == NPIX
+    fresnel = np.asarray(jax.jit(lambda m: m.sequence_constants().fresnel)(model))
+    field = np.asarray(APERTURE(model, state), dtype=np.float64) * fresnel.astype(np.complex128)
+    mono = np.abs(np.fft.fftshift(np.fft.fft2(field, s=(NPIX, NPIX)))) ** 2
+    mono /= NPIX**2 * np.sum(np.abs(field) ** 2)  # Parseval: the whole plane holds 1
+    np.testing.assert_allclose(mono.sum(), 1.0, rtol=1e-12)
+    weights_y = np.asarray(spec.weights_xyz, dtype=np.float64)[:, 1]
+    np.testing.assert_allclose(weights_y.sum(), 1.0, rtol=1e-6)
+    factors = np.asarray(spec.wavelengths_nm, dtype=np.float64) / spec.reference_wavelength_nm
+    with x64():
+        kept = [float(SCALED_SUM(jnp.asarray(mono), f)) for f in factors]
+    return float(weights_y @ np.asarray(kept))
+
+
 def test_sequence_is_one_scan_equal_to_frame_by_frame_and_moves(model, sequence):
     states, last, psfs = sequence
     assert psfs.shape == (4, NPIX, NPIX, 3)
@@ -130,9 +162,12 @@ def test_sequence_is_one_scan_equal_to_frame_by_frame_and_moves(model, sequence)
     np.testing.assert_allclose(float(last.time_s), 4.0 / model.fps, rtol=1e-6)
     for n in (0, 3):
         np.testing.assert_allclose(psfs[n], PSF(model, states[n]), rtol=1e-5, atol=1e-9)
-    # Unit energy (Y) up to what the 575 nm copies scaled beyond the field lose.
-    y = psfs @ np.array([0.2126, 0.7152, 0.0722])
-    assert np.all((y.sum(axis=(1, 2)) > 0.85) & (y.sum(axis=(1, 2)) < 1.01))
+    # Unit energy (Y) up to what the copies magnified beyond the field lose.
+    np.testing.assert_allclose(
+        (psfs.astype(np.float64) @ luminance_row(model)).sum(axis=(1, 2)),
+        [expected_luminance_sum(model, s) for s in states],
+        rtol=2e-5,
+    )
     changes = np.abs(np.diff(psfs, axis=0)).sum(axis=(1, 2, 3)) / np.abs(psfs[0]).sum()
     assert np.all(changes > 1e-5)  # the glare fluctuates from frame to frame (33 ms apart)
     # The pupil of every frame is eq. 1 about the eye's own diameter.
@@ -236,6 +271,22 @@ def test_pupil_adapts_to_the_frames_luminance():
 # ------------------------------------------------------------------------------ spectral
 
 
+#: Relative L1 and peak error of the scaled copies against the exact per-wavelength
+#: Fresnel PSFs, by distance factor (measured; float32 with the module's fixed keys, so a
+#: rerun repeats them to ~1e-6). Factor 1000 (N_F = 0.005 at 575 nm) is the Fraunhofer
+#: limit: only the bilinear resampling of the copies; factor 10 (N_F = 0.48) and the
+#: model's own distance (N_F = 4.85) add the paper's one-E approximation, which grows
+#: with the Fresnel number.
+MEASURED_SCALED_COPY_ERRORS = {
+    1000.0: (0.0983, 0.0436),
+    10.0: (0.1258, 0.1192),
+    1.0: (0.3765, 0.8029),
+}
+#: 6 % above the measured values: room for another XLA's rounding, while copies 10 %
+#: too bright fail (L1 0.169 / 0.174 / 0.412, peak 0.100 / 0.231 / 0.919 measured).
+ERROR_MARGIN = 1.06
+
+
 def test_scaled_copies_against_exact_per_wavelength_fresnel_psfs(model, record_property):
     """The paper's chromatic blur (one E at 575 nm, copies scaled by lambda / 575) against
     the exact sum of per-wavelength Fresnel PSFs (E and the transform at each wavelength).
@@ -243,8 +294,8 @@ def test_scaled_copies_against_exact_per_wavelength_fresnel_psfs(model, record_p
     In the Fraunhofer limit the copies differ from the exact PSFs only by their bilinear
     resampling; the Fresnel term breaks the scaling (the on-axis intensity of a Fresnel
     pattern oscillates with the Fresnel number, which differs by 575 / 380 across the
-    spectrum), so the error grows with the Fresnel number. Measured at 64 px (N_F at 575 nm,
-    relative L1 / peak): 4.85: 0.38 / 0.80; 0.48: 0.13 / 0.12.
+    spectrum), so the error grows with the Fresnel number (measured at 64 px:
+    `MEASURED_SCALED_COPY_ERRORS`).
     """
     state = model.init_state()
     aperture = APERTURE(model, state)
@@ -263,27 +314,33 @@ def test_scaled_copies_against_exact_per_wavelength_fresnel_psfs(model, record_p
     yy, xx = np.mgrid[:NPIX, :NPIX] - c
     inside = np.hypot(yy, xx) < 0.6 * c
     radius = 0.5 * float(model.eye.pupil.diameter_mm)
+
+    def relative_errors(scaled, exact):
+        """(relative L1 inside, peak difference / exact peak)."""
+        diff = np.abs(scaled - exact)[inside]
+        return float(diff.sum() / np.abs(exact)[inside].sum()), float(diff.max() / exact.max())
+
     errors = {}
-    for factor in (1.0, 10.0, 1000.0):
+    for factor, measured in MEASURED_SCALED_COPY_ERRORS.items():
         distance = float(prop.focal_length_mm) * factor
         m = eqx.tree_at(lambda m: m.propagator.focal_length_mm, model, distance)
         scaled = np.asarray(PSF(m, state))
         exact = np.asarray(exact_rgb(aperture, distance))
-        diff = np.abs(scaled - exact)[inside]
-        l1 = float(diff.sum() / np.abs(exact)[inside].sum())
-        peak = float(diff.max() / exact.max())
+        l1, peak = errors[factor] = relative_errors(scaled, exact)
         fresnel_number = radius**2 / (575e-6 * distance)
-        errors[factor] = (l1, peak)
         record_property(f"scaled_copies_error_NF{fresnel_number:.2f}", (l1, peak))
         print(
             f"scaled copies vs exact Fresnel at N_F = {fresnel_number:.2f} (575 nm): "
             f"relative L1 {l1:.4f}, peak {peak:.4f}"
         )
-    # Fraunhofer limit: only the bilinear resampling of a PSF sampled at twice Nyquist.
-    assert errors[1000.0][0] < 0.2 and errors[1000.0][1] < 0.2
-    # The model's own Fresnel number: the paper's one-E approximation on top of that.
-    assert errors[1.0][0] < 0.6 and errors[1.0][1] < 1.0
+        bounds = [ERROR_MARGIN * e for e in measured]
+        assert l1 <= bounds[0] and peak <= bounds[1], (fresnel_number, l1, peak, measured)
+        # The bounds can fail: copies 10 % too bright exceed one of them.
+        l1_10, peak_10 = relative_errors(1.1 * scaled, exact)
+        assert l1_10 > bounds[0] or peak_10 > bounds[1], (fresnel_number, l1_10, peak_10)
     assert errors[1000.0][0] <= errors[10.0][0] < errors[1.0][0]
+
+
 
 
 # ------------------------------------------------------------------------------ gradients
@@ -309,6 +366,11 @@ def test_frame_psf_gradients_match_finite_differences_in_float64():
             lambda m: m.eye.upper_lashes.thickness_mm,  # a lash parameter
         )
         x0 = jnp.array([5.0, 12.5, 0.12, 0.3, 0.12])
+        # Central-difference steps where the h² truncation shows (measured relative errors
+        # 1e-6 to 3e-6 here, 16 times less at a quarter step), except the particle size:
+        # its soft rasters have kinks (an edge crossing a pixel's corner) within 1e-4 mm,
+        # so its steps are below them, at the rounding floor.
+        steps = (5e-4, 1.25e-3, 1e-5, 1e-4, 5e-5)
         w = weights((NPIX, NPIX, 3))
         state = m.init_state()
 
@@ -322,11 +384,15 @@ def test_frame_psf_gradients_match_finite_differences_in_float64():
         value_and_grad = jax.jit(jax.value_and_grad(loss))
         grad = np.asarray(value_and_grad(x0)[1])
         for i in range(len(paths)):
-            eps = 1e-6 * max(1.0, float(x0[i]))
-            e = jnp.zeros_like(x0).at[i].set(eps)
-            fd = float((value_and_grad(x0 + e)[0] - value_and_grad(x0 - e)[0]) / (2 * eps))
-            np.testing.assert_allclose(grad[i], fd, rtol=2e-4, atol=1e-9)
             assert grad[i] != 0.0
+            assert_grad_converges(
+                lambda x, i=i: value_and_grad(x0.at[i].set(x))[0],
+                float(x0[i]),
+                steps[i],
+                grad=grad[i],
+                rtol=1e-5,
+                err_msg=f"parameter {i}",
+            )
 
 
 @pytest.mark.slow
@@ -342,14 +408,14 @@ def test_sequence_gradient_wrt_hippus_amplitude_matches_finite_differences():
             return jnp.sum(w * mm.psf_sequence(3)[1])
 
         value_and_grad = jax.jit(jax.value_and_grad(loss))  # one compilation for both
-        a0, eps = 0.3, 1e-6
+        a0 = 0.3
         ad = float(value_and_grad(jnp.float64(a0))[1])
-        fd = float(
-            (value_and_grad(jnp.float64(a0 + eps))[0] - value_and_grad(jnp.float64(a0 - eps))[0])
-            / (2 * eps)
-        )
-        np.testing.assert_allclose(ad, fd, rtol=2e-4)
         assert ad != 0.0
+        # At 1e-3 the truncation error is 3e-6 of the derivative (measured), 16 times less
+        # at a quarter of it.
+        assert_grad_converges(
+            lambda a: value_and_grad(a)[0], a0, 1e-3, grad=ad, rtol=1e-5, err_msg="hippus"
+        )
 
 
 # ------------------------------------------------------------------------------ transforms

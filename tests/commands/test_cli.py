@@ -13,7 +13,7 @@ from typer.testing import CliRunner
 from invglare.cli import app
 from invglare.files.exr import read_exr
 
-EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
+EXAMPLES = Path(__file__).resolve().parents[2] / "examples"
 runner = CliRunner()
 
 

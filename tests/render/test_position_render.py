@@ -26,7 +26,7 @@ from invglare.render import (
 )
 from invglare.render.position_glare import psf_npix_at_scale
 
-EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
+EXAMPLES = Path(__file__).resolve().parents[2] / "examples"
 SCALE = 0.012  # deg per frame pixel: 4 model pixels of 0.003 deg
 
 
