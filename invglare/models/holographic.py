@@ -1,0 +1,1018 @@
+"""The holographic layered eye of Novosad & Ziegler: a frame and its depth through thin layers.
+
+The paper's eye simulation (sec. 2) as a model: every pixel of an HDR frame is a point
+source at its reprojected position; their spherical waves meet the eye's first plane (the
+base layer) and pass parallel thin layers, carried between them by the angular spectrum:
+
+| layer        | plane (mm in front of the pupil) | transmission                          |
+|--------------|----------------------------------|---------------------------------------|
+| spectacles   | `spectacle_distance_mm` (15.6)   | sphere and cylinder phase             |
+| lashes       | `lash_distance_mm` (6)           | lids and lashes (amplitude)           |
+| tear film    | `cornea_distance_mm` (3.6)       | ``exp(i k (eta - 1) d)``, a height field |
+| pupil, lens  | 0                                | pupil opening, accommodation phase    |
+
+then the lens focuses them on the retina (one FFT: the retinal image's pixels are the
+frame's directions). Each layer but the base can be switched off (`layers`); the first
+active plane is the base plane. Iterations with new random phases average the speckle
+away (:meth:`HolographicEye.render`); :meth:`HolographicEye.speckle_free_image` computes
+their limit directly, and is the fast mode (exact when no layer is in front of the pupil;
+see :mod:`invglare.optics.holographic.stack` for what it approximates otherwise).
+
+**Sampling** (:mod:`invglare.optics.holographic.sampling`): all grids are ``N x N``; the
+output pixel is ``dt`` (tangent space) and the aperture pitch of wavelength ``lambda`` is
+``lambda / (N dt)``, so the window ``lambda / dt`` must hold the pupil and the sideways walk
+of the light over the layers in front of it, at the shortest wavelength. A frame of
+``H x W`` pixels sits at the centre of the grid (``N >= input_step * max(H, W)``), its
+pixels ``input_step`` output pixels apart; the grid is periodic, so glare that leaves one
+edge of the grid comes back at the other: leave a margin (``N`` larger than the frame)
+where that matters.
+
+**Fittable leaves**: ``eye.pupil.diameter_mm``, ``accommodation_d`` (the lens's focus, in
+dioptres: 1000 / focus distance in mm), ``tear_film.amplitude_um``,
+``tear_film.scale_mm``, the lash layout (``eye.upper_lashes.*``: count, angles,
+thickness, length, ...), the spectacles' powers, and the constant scene depth
+``depth_mm``.
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+from typing import Any
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, ArrayLike, Float, Key
+
+from invglare.aperture.eye import EyeAperture
+from invglare.errors import ConfigError, InputDataError, PhysicsRangeError
+from invglare.optics.holographic.layers import (
+    Spectacles,
+    propagation_kernel,
+    thin_lens_phase,
+    vergence_chirp,
+)
+from invglare.optics.holographic.sampling import HoloSampling, depth_layers_needed
+from invglare.optics.holographic.sources import (
+    PHASES,
+    Frustum,
+    bins_to_image,
+    check_depth_buffer,
+    check_frame,
+    crop_frame,
+    decode_depth,
+    directions,
+    image_to_bins,
+    layer_vergences,
+    place_frame,
+    source_amplitudes,
+)
+from invglare.optics.holographic.stack import (
+    ChannelStack,
+    iterate_intensity,
+    iteration_bytes,
+    point_response,
+    speckle_free,
+)
+from invglare.optics.holographic.tear_film import TearFilm
+
+__all__ = [
+    "LAYERS",
+    "MODES",
+    "HolographicEye",
+    "holographic_from_config",
+    "holographic_to_config",
+]
+
+#: The switchable layers (the base layer is always on).
+LAYERS = ("spectacles", "lashes", "tear_film", "pupil", "lens")
+#: How :meth:`HolographicEye.image` renders: random-phase iterations or their limit.
+MODES = ("iterations", "speckle_free")
+#: Default wavelengths of the R, G and B channels (nm).
+DEFAULT_RGB_NM = (640.0, 550.0, 460.0)
+#: Pixels of margin kept between the light the pupil needs and the window's edge.
+_MARGIN_PX = 2
+
+
+def _float(x) -> Array:
+    arr = jnp.asarray(x)
+    if not jnp.issubdtype(arr.dtype, jnp.floating):
+        arr = arr.astype(jnp.result_type(float))
+    return arr
+
+
+def _concrete(*xs) -> bool:
+    return not any(isinstance(x, jax.core.Tracer) for x in xs)
+
+
+def _check_int(name: str, value, lo: int) -> int:
+    if not isinstance(value, int | np.integer) or isinstance(value, bool) or value < lo:
+        raise ConfigError(f"{name} must be an integer >= {lo}, got {value!r}")
+    return int(value)
+
+
+def check_iterations(iterations) -> int:
+    """Refuse a number of iterations that is not an integer >= 1 (`ConfigError`)."""
+    if not isinstance(iterations, int | np.integer) or isinstance(iterations, bool):
+        raise ConfigError(f"iterations must be an integer >= 1, got {iterations!r}")
+    if iterations < 1:
+        raise ConfigError(
+            f"iterations must be >= 1 (one random-phase draw at least), got {iterations}"
+        )
+    return int(iterations)
+
+
+def focus_to_accommodation_d(focus_distance_mm: float) -> float:
+    """Accommodation (D) of an eye focused at `focus_distance_mm` (> 0; ``inf``: 0 D)."""
+    f = float(focus_distance_mm)
+    if not (f > 0) or math.isnan(f):
+        raise PhysicsRangeError(f"focus distance must be > 0 (inf for a relaxed eye), got {f:g} mm")
+    return 0.0 if math.isinf(f) else 1000.0 / f
+
+
+class HolographicEye(eqx.Module):
+    """The holographic layered eye: frame + depth -> point sources -> thin layers -> retina.
+
+    Build one with :meth:`build` (validated) or from a config with
+    :func:`holographic_from_config`.
+
+    **Fields (leaves):**
+
+    - `eye`: an :class:`~invglare.aperture.eye.EyeAperture`: its pupil (and particles and
+      gratings, which sit in the pupil plane) is the pupil layer, its lids and lashes the
+      lash layer.
+    - `accommodation_d`: the lens's focus (D, ``1000 / focus distance in mm``).
+    - `depth_mm`: the scene's depth (mm) when no depth buffer is given.
+    - `tear_film`: a :class:`~invglare.optics.holographic.TearFilm` or None.
+    - `spectacles`: a :class:`~invglare.optics.holographic.Spectacles` or None.
+
+    **Configuration (static):** `sampling`, `frustum`, `layers` (the active switchable
+    layers), the planes' distances, `depth_layers`, `iterations`, `input_step`,
+    `phases`, `chunk` (iterations per batch, from the memory budget), `psf_tiles`
+    (speckle-free mode), `mode`.
+
+    **Example:**
+
+    ```python
+    model = HolographicEye.build(eye, npix=256, window_mm=8.0, focus_distance_mm=2000.0)
+    img = model.render(frame, key=jax.random.key(0), iterations=16)   # (H, W, 3)
+    limit = model.speckle_free_image(frame)                             # the same, n -> inf
+    ```
+    """
+
+    eye: EyeAperture
+    accommodation_d: Float[Array, ""] = eqx.field(converter=_float)
+    depth_mm: Float[Array, ""] = eqx.field(converter=_float)
+    tear_film: TearFilm | None
+    spectacles: Spectacles | None
+    sampling: HoloSampling
+    frustum: Frustum
+    layers: tuple[str, ...] = eqx.field(static=True)
+    lash_distance_mm: float = eqx.field(static=True, default=6.0)
+    cornea_distance_mm: float = eqx.field(static=True, default=3.6)
+    spectacle_distance_mm: float = eqx.field(static=True, default=15.6)
+    depth_layers: int = eqx.field(static=True, default=1)
+    iterations: int = eqx.field(static=True, default=16)
+    input_step: int = eqx.field(static=True, default=1)
+    phases: str = eqx.field(static=True, default="uniform")
+    chunk: int = eqx.field(static=True, default=8)
+    psf_tiles: int = eqx.field(static=True, default=1)
+    mode: str = eqx.field(static=True, default="iterations")
+    memory_budget_mb: float = eqx.field(static=True, default=1024.0)
+
+    # ------------------------------------------------------------------ build
+
+    @classmethod
+    def build(
+        cls,
+        eye: EyeAperture,
+        *,
+        npix: int = 512,
+        window_mm: float | None = 8.0,
+        pixel_scale_deg: float | None = None,
+        wavelengths_nm: Any = DEFAULT_RGB_NM,
+        focus_distance_mm: float = math.inf,
+        depth_mm: float = 2000.0,
+        tear_film: TearFilm | None = None,
+        spectacles: Spectacles | None = None,
+        layers: Any = ("lashes", "tear_film", "pupil", "lens"),
+        frustum: Frustum | None = None,
+        lash_distance_mm: float = 6.0,
+        cornea_distance_mm: float = 3.6,
+        spectacle_distance_mm: float = 15.6,
+        depth_layers: int | str = 1,
+        iterations: int = 16,
+        input_step: int = 1,
+        phases: str = "uniform",
+        psf_tiles: int = 1,
+        mode: str = "iterations",
+        memory_budget_mb: float = 1024.0,
+        chunk: int | None = None,
+        max_pupil_mm: float | None = None,
+    ) -> HolographicEye:
+        """Choose the sampling and check every choice before any work.
+
+        **Arguments:**
+
+        - `eye`: pupil (required), lids and lashes (the lash layer), particles.
+        - `npix`: grid size ``N`` (even).
+        - `window_mm` or `pixel_scale_deg`: the aperture window of the shortest wavelength
+          (mm), or the output pixel (deg); give one (`pixel_scale_deg` wins).
+        - `wavelengths_nm`: one per channel (default R, G, B = 640, 550, 460 nm).
+        - `focus_distance_mm`: where the lens focuses (mm, > 0; ``inf``: relaxed).
+        - `depth_mm`: the scene's depth without a depth buffer (mm, > 0).
+        - `tear_film`, `spectacles`: the layers' elements (None: not present).
+        - `layers`: the switchable layers that are on (of :data:`LAYERS`).
+        - `frustum`: how depth buffers are decoded (default: planar depth in metres).
+        - `lash_distance_mm`, `cornea_distance_mm`, `spectacle_distance_mm`: the planes.
+        - `depth_layers`: vergence layers (int >= 1) or ``"auto"`` (from the frustum's
+          near and far planes, the largest pupil and the shortest wavelength, with
+          :func:`~invglare.optics.holographic.depth_layers_needed`).
+        - `iterations`: default random-phase draws of :meth:`render` (>= 1).
+        - `input_step`: output pixels between two input pixels (>= 1).
+        - `phases`: ``"uniform"`` or ``"quaternary"``.
+        - `psf_tiles`: PSF tiles per axis of the speckle-free mode.
+        - `mode`: what :meth:`image` does by default (:data:`MODES`).
+        - `memory_budget_mb`: working memory of a batch of iterations (MB).
+        - `chunk`: iterations propagated at once (default: 1 on a CPU, else as many as
+          the budget holds, at most 32), capped by the budget.
+        - `max_pupil_mm`: the largest pupil the model will be given (a fit's upper
+          bound); default the eye's. The window is checked for it.
+
+        **Raises:** `ConfigError` for bad choices; `PhysicsRangeError` for a focus distance
+        <= 0, a window too small for the pupil, a lens or tear film the grid aliases.
+        """
+        if not isinstance(eye, EyeAperture):
+            raise ConfigError(f"the holographic eye needs an EyeAperture, got {type(eye).__name__}")
+        if pixel_scale_deg is not None:
+            sampling = HoloSampling.from_pixel_scale(npix, pixel_scale_deg, wavelengths_nm)
+        elif window_mm is not None:
+            sampling = HoloSampling.from_window(npix, window_mm, wavelengths_nm)
+        else:
+            raise ConfigError("give window_mm or pixel_scale_deg")
+        layers = tuple(layers)
+        for name in layers:
+            if name not in LAYERS:
+                raise ConfigError(f"layer {name!r} is not one of {', '.join(LAYERS)}")
+        layers = tuple(name for name in LAYERS if name in layers)
+        frustum = Frustum() if frustum is None else frustum
+        if not isinstance(frustum, Frustum):
+            raise ConfigError(f"frustum must be a Frustum, got {type(frustum).__name__}")
+        for name, value in (
+            ("lash_distance_mm", lash_distance_mm),
+            ("cornea_distance_mm", cornea_distance_mm),
+            ("spectacle_distance_mm", spectacle_distance_mm),
+        ):
+            if not (isinstance(value, int | float) and math.isfinite(value) and value > 0):
+                raise PhysicsRangeError(f"{name} must be a finite number > 0 mm, got {value!r}")
+        if phases not in PHASES:
+            raise ConfigError(f"phases = {phases!r} is not one of {', '.join(PHASES)}")
+        if mode not in MODES:
+            raise ConfigError(f"mode = {mode!r} is not one of {', '.join(MODES)}")
+        iterations = check_iterations(iterations)
+        input_step = _check_int("input_step", input_step, 1)
+        psf_tiles = _check_int("psf_tiles", psf_tiles, 1)
+        accommodation = focus_to_accommodation_d(focus_distance_mm)
+        if not (isinstance(depth_mm, int | float) and math.isfinite(depth_mm) and depth_mm > 0):
+            raise PhysicsRangeError(f"depth_mm must be a finite depth > 0 mm, got {depth_mm!r}")
+        pupil_mm = float(eye.pupil.diameter_mm) if max_pupil_mm is None else float(max_pupil_mm)
+        if depth_layers == "auto":
+            if frustum.near_mm is None:
+                raise ConfigError("depth_layers = 'auto' needs the frustum's near_mm")
+            far = math.inf if frustum.far_mm is None else frustum.far_mm
+            depth_layers = depth_layers_needed(
+                frustum.near_mm, far, pupil_mm, min(sampling.wavelengths_nm)
+            )
+        depth_layers = _check_int("depth_layers", depth_layers, 1)
+        if not (math.isfinite(memory_budget_mb) and memory_budget_mb > 0):
+            raise ConfigError(f"memory_budget_mb must be > 0, got {memory_budget_mb!r}")
+        per_iteration = iteration_bytes(npix, sampling.n_channels, depth_layers)
+        budget = memory_budget_mb * 2**20
+        if per_iteration > budget:
+            raise ConfigError(
+                f"one iteration of a {npix}^2 grid with {sampling.n_channels} channels needs "
+                f"about {per_iteration / 2**20:.0f} MB, above memory_budget_mb = "
+                f"{memory_budget_mb:g}; raise the budget or lower npix"
+            )
+        if chunk is None:
+            # On a CPU one draw at a time is fastest (its fields stay in cache; measured at
+            # 512^2: 5.0-5.6 s for 64 draws one by one against 8.3-10 s eight at a time);
+            # accelerators want batches as large as the budget allows.
+            chunk = 1 if jax.default_backend() == "cpu" else 32
+        chunk = _check_int("chunk", chunk, 1)
+        chunk = max(1, min(chunk, iterations, int(budget // per_iteration)))
+        grid = sampling.grid(min(sampling.wavelengths_nm))
+        eye = eye.with_stamp_windows(grid)
+        model = cls(
+            eye=eye,
+            accommodation_d=accommodation,
+            depth_mm=float(depth_mm),
+            tear_film=tear_film,
+            spectacles=spectacles,
+            sampling=sampling,
+            frustum=frustum,
+            layers=layers,
+            lash_distance_mm=float(lash_distance_mm),
+            cornea_distance_mm=float(cornea_distance_mm),
+            spectacle_distance_mm=float(spectacle_distance_mm),
+            depth_layers=depth_layers,
+            iterations=iterations,
+            input_step=input_step,
+            phases=phases,
+            chunk=chunk,
+            psf_tiles=psf_tiles,
+            mode=mode,
+            memory_budget_mb=float(memory_budget_mb),
+        )
+        model.check_sampling(pupil_mm)
+        return model
+
+    # ------------------------------------------------------------------ geometry
+
+    def _planes(self) -> list[tuple[str, float]]:
+        """The active planes in front of the pupil, farthest first: (layer, distance mm)."""
+        planes = []
+        if "spectacles" in self.layers and self.spectacles is not None:
+            planes.append(("spectacles", self.spectacle_distance_mm))
+        if "lashes" in self.layers and self.eye.lids is not None:
+            planes.append(("lashes", self.lash_distance_mm))
+        if "tear_film" in self.layers and self.tear_film is not None:
+            planes.append(("tear_film", self.cornea_distance_mm))
+        return sorted(planes, key=lambda p: -p[1])
+
+    @property
+    def base_distance_mm(self) -> float:
+        """Distance of the base plane (the first active plane) in front of the pupil (mm)."""
+        planes = self._planes()
+        return planes[0][1] if planes else 0.0
+
+    @property
+    def shift_invariant(self) -> bool:
+        """Whether one PSF renders the image: no active layer in front of the pupil."""
+        return not self._planes()
+
+    @property
+    def pixel_scale_deg(self) -> float:
+        return self.sampling.pixel_scale_deg
+
+    @property
+    def wavelengths_nm(self) -> tuple[float, ...]:
+        return self.sampling.wavelengths_nm
+
+    @property
+    def npix(self) -> int:
+        return self.sampling.npix
+
+    def _need_radius_mm(self, pupil_mm: float) -> float:
+        """Radius (mm) of the disk the light reaching the pupil crosses, plus a margin."""
+        decentre = float(np.hypot(*np.asarray(self.eye.pupil.decentration_mm)))
+        walk = self.base_distance_mm * self.sampling.half_field_rad
+        return 0.5 * pupil_mm + decentre + walk + _MARGIN_PX * self.sampling.finest_pitch_mm
+
+    def nearest_depth_mm(self, pupil_mm: float | None = None) -> float:
+        """The nearest source depth (mm) whose wave the grid samples where it matters.
+
+        A source at depth ``z`` reaches the base plane (``d`` in front of the pupil) with
+        vergence ``1 / (z - d)``; out to the radius ``r`` the pupil's light crosses, its
+        curvature bends rays by up to ``r / (z - d)``, which must stay within the grid's
+        half field ``N dt / 2``: ``z >= d + r / (N dt / 2)``.
+        """
+        pupil = float(self.eye.pupil.diameter_mm) if pupil_mm is None else pupil_mm
+        return self.base_distance_mm + self._need_radius_mm(pupil) / self.sampling.half_field_rad
+
+    def check_sampling(self, pupil_mm: float | None = None, time_s=(0.0,)) -> None:
+        """Refuse a window that cannot hold the pupil, or a layer the grid aliases."""
+        pupil = float(self.eye.pupil.diameter_mm) if pupil_mm is None else float(pupil_mm)
+        s = self.sampling
+        need = self._need_radius_mm(pupil)
+        window = s.smallest_window_mm
+        if 2.0 * need > window:
+            raise PhysicsRangeError(
+                f"the pupil ({pupil:g} mm) and the light's walk over the "
+                f"{self.base_distance_mm:g} mm of layers in front of it need a window of "
+                f"{2 * need:.3g} mm at {min(s.wavelengths_nm):g} nm; the grid's is {window:.3g} "
+                "mm (window_mm = lambda / dt): use a larger window_mm (or a smaller "
+                "pixel_scale_deg), and raise npix to keep the field"
+            )
+        half = s.half_field_rad
+        if "lens" in self.layers and _concrete(self.accommodation_d):
+            a = abs(float(self.accommodation_d)) * 1e-3
+            radius = 0.5 * pupil
+            if a * radius > half:
+                raise PhysicsRangeError(
+                    f"a lens accommodated by {float(self.accommodation_d):g} D (focus at "
+                    f"{1000 / float(self.accommodation_d):.4g} mm) bends rays at the pupil's edge "
+                    f"by {a * radius:.3g} rad, beyond the grid's half field {half:.3g} rad "
+                    f"(N dt / 2): the grid aliases its phase; focus farther than "
+                    f"{radius / half:.4g} mm or raise npix"
+                )
+        if "spectacles" in self.layers and self.spectacles is not None:
+            if _concrete(self.spectacles.sphere_d, self.spectacles.cylinder_d):
+                p = self.spectacles.max_power_d() * 1e-3
+                radius = (
+                    0.5 * pupil + self.spectacle_distance_mm * half + _MARGIN_PX * s.finest_pitch_mm
+                )
+                if p * radius > half:
+                    raise PhysicsRangeError(
+                        f"spectacles of {self.spectacles.max_power_d():g} D bend rays at "
+                        f"{radius:.3g} mm by {p * radius:.3g} rad, beyond the grid's half field "
+                        f"{half:.3g} rad: the grid aliases their phase; raise npix"
+                    )
+        if "tear_film" in self.layers and self.tear_film is not None:
+            lam = min(s.wavelengths_nm)
+            walk = self.cornea_distance_mm * half
+            self.tear_film.check_sampled(
+                s.grid(lam), lam, time_s, radius_mm=0.5 * pupil + walk + 2 * s.finest_pitch_mm
+            )
+
+    # ------------------------------------------------------------------ the stack
+
+    def channel_stack(
+        self,
+        wavelength_nm: Float[ArrayLike, ""],
+        vergences_per_mm: Float[ArrayLike, " l"],
+        time_s: Float[ArrayLike, ""] = 0.0,
+    ) -> ChannelStack:
+        """The layer stack of one wavelength (traced, so `vmap` runs it over channels).
+
+        `vergences_per_mm` are the depth layers' ``1 / z`` (z from the pupil, mm).
+        """
+        from invglare.optics.sampling import ApertureGrid
+
+        lam = _float(wavelength_nm)
+        n = self.npix
+        grid = ApertureGrid(n, lam * 1e-6 / (n * self.sampling.pixel_scale_rad))
+        shift = jnp.fft.ifftshift
+
+        def element(name: str):
+            if name == "spectacles":
+                return self.spectacles.transmission(grid, lam)
+            if name == "lashes":
+                return self.eye.obstacle_transmission(grid)
+            return self.tear_film.transmission(grid, lam, time_s)
+
+        opening = self.eye.pupil.coverage(grid)
+        if "pupil" in self.layers:
+            last = self.eye.pupil_transmission(grid)
+            gain = 1.0 / jnp.mean(opening)
+        else:
+            last = jnp.ones_like(opening)
+            gain = jnp.ones((), opening.dtype)
+        if "lens" in self.layers:
+            last = last * thin_lens_phase(grid, lam, self.accommodation_d * 1e-3)
+        planes = self._planes()
+        d_base = planes[0][1] if planes else 0.0
+        v = jnp.asarray(vergences_per_mm)
+        # 1 / (z - d) = V / (1 - V d): the vergence at the base plane.
+        v_base = v / (1.0 - v * d_base)
+        chirps = jax.vmap(lambda vl: vergence_chirp(grid, lam, vl))(v_base)
+        if planes:
+            first = element(planes[0][0])
+            transmissions = [element(name) for name, _ in planes[1:]] + [last]
+            distances = [d for _, d in planes] + [0.0]
+            kernels = tuple(
+                propagation_kernel(grid, lam, d0 - d1) for d0, d1 in itertools.pairwise(distances)
+            )
+        else:
+            first, transmissions, kernels = last, [], ()
+        front = shift(chirps * first[None], axes=(-2, -1))
+        trans = tuple(shift(t.astype(front.dtype)) for t in transmissions)
+        return ChannelStack(front, kernels, trans, gain)
+
+    def stacks(self, vergences_per_mm, time_s=0.0) -> ChannelStack:
+        """Every channel's stack (leading channel axis)."""
+        lams = jnp.asarray(self.sampling.wavelengths_nm, jnp.result_type(float))
+        return jax.vmap(lambda w: self.channel_stack(w, vergences_per_mm, time_s))(lams)
+
+    # ------------------------------------------------------------------ sources
+
+    def _prepare(self, frame, depth, time_s, check: bool = True):
+        """Validate the inputs and turn them into amplitudes and depth layers (FFT layout)."""
+        if check:
+            arr = check_frame(frame)
+            if arr is not None:
+                shape = arr.shape
+            else:
+                shape = jnp.shape(frame)
+        else:
+            shape = jnp.shape(frame)
+        img = _float(frame)
+        img = img[None] if img.ndim == 2 else jnp.moveaxis(img, -1, 0)
+        c = img.shape[0]
+        n_ch = self.sampling.n_channels
+        if c not in (1, n_ch):
+            raise InputDataError(
+                f"the frame has {c} channels (shape {tuple(shape)}) but the eye has {n_ch} "
+                f"wavelengths {self.sampling.wavelengths_nm}; give a mono frame or {n_ch} channels"
+            )
+        img = jnp.broadcast_to(img, (n_ch, *img.shape[1:]))
+        h, w = img.shape[1:]
+        step = self.input_step
+        if self.frustum.fov_x_deg is not None:
+            frame_dt = self.frustum.pixel_scale_rad(w)
+            want = step * self.sampling.pixel_scale_rad
+            if abs(frame_dt / want - 1.0) > 1e-3:
+                raise InputDataError(
+                    f"the frame's field of view ({self.frustum.fov_x_deg:g} deg over {w} px, "
+                    f"{math.degrees(frame_dt):.4g} deg per pixel) does not match the eye's "
+                    f"{math.degrees(want):.4g} deg per input pixel (pixel_scale_deg "
+                    f"{self.pixel_scale_deg:.4g} x input_step {step}); resample the frame"
+                )
+        n = self.npix
+        placed = place_frame(source_amplitudes(img, step), n, step)
+        ty, tx = directions(n, self.sampling.pixel_scale_rad, placed.dtype)
+        if depth is None:
+            z = jnp.broadcast_to(self.depth_mm, (n, n)).astype(placed.dtype)
+        elif jnp.ndim(depth) == 0:
+            if check and _concrete(depth) and not (float(depth) > 0 and math.isfinite(depth)):
+                raise PhysicsRangeError(f"constant depth must be > 0 mm, got {float(depth)!r}")
+            z = jnp.broadcast_to(_float(depth), (n, n)).astype(placed.dtype)
+        else:
+            if check:
+                check_depth_buffer(depth, (h, w), self.frustum)
+            d = _float(depth)
+            d = d[..., 0] if d.ndim == 3 else d
+            d_placed = place_frame(d[None], n, step)[0]
+            z_all = decode_depth(d_placed, self.frustum, (ty, tx))
+            # Bins without a source get a harmless depth (they carry no light).
+            z = jnp.where(placed[0] > 0, z_all, jnp.max(z_all))
+        if check and _concrete(z):
+            present = np.asarray(jnp.sum(placed, axis=0) > 0)
+            if present.any():
+                z_near = float(np.min(np.asarray(z)[present]))
+                nearest = self.nearest_depth_mm()
+                if z_near < nearest:
+                    raise PhysicsRangeError(
+                        f"a source at {z_near:.4g} mm is nearer than this grid resolves "
+                        f"({nearest:.4g} mm: its wave's curvature aliases where the pupil's "
+                        "light crosses the window); raise npix or move the near plane out"
+                    )
+            if "tear_film" in self.layers and self.tear_film is not None and _concrete(time_s):
+                self.check_sampling(time_s=(float(time_s),))
+        vergence = 1.0 / z
+        weight = jnp.sum(placed, axis=0)
+        if self.depth_layers == 1 and depth is not None and jnp.ndim(depth) != 0:
+            # One layer for a varying depth: the mid-range vergence.
+            centres, _ = layer_vergences(vergence, weight, 1)
+            index = None
+        elif self.depth_layers == 1:
+            centres, index = vergence[:1, 0], None
+        else:
+            centres, idx = layer_vergences(vergence, weight, self.depth_layers)
+            index = image_to_bins(idx)
+        return image_to_bins(placed), centres, index, (h, w)
+
+    # ------------------------------------------------------------------ rendering
+
+    def render(
+        self,
+        frame: Float[ArrayLike, "H W *c"],
+        depth: Float[ArrayLike, "H W"] | float | None = None,
+        key: Key[Array, ""] | int = 0,
+        *,
+        iterations: int | None = None,
+        time_s: float | Float[ArrayLike, ""] = 0.0,
+        progress: bool = False,
+    ) -> Float[Array, "h w c"]:
+        """Render a frame through the eye by random-phase iterations (the paper's method).
+
+        **Arguments:**
+
+        - `frame`: ``(H, W)`` or ``(H, W, C)`` linear HDR values (>= 0), ``C`` = channels.
+        - `depth`: a depth buffer ``(H, W)`` (decoded with the frustum), one constant depth
+          (mm), or None (the model's `depth_mm`).
+        - `key`: key (or int seed) of the random phases.
+        - `iterations`: draws to average (default the model's).
+        - `time_s`: time since the last blink (the tear film's animation).
+        - `progress`: a progress bar over the iterations (not under `jit`).
+
+        **Returns:** ``(input_step H, input_step W, C)`` linear intensities at the model's
+        pixel scale, in the frame's units (a clear pupil keeps the frame's brightness).
+
+        **Raises:** `InputDataError` / `PhysicsRangeError` / `ConfigError` (see
+        :meth:`check_sampling` and :func:`~invglare.optics.holographic.sources.check_depth_buffer`).
+        """
+        n_it = self.iterations if iterations is None else check_iterations(iterations)
+        if isinstance(key, int | np.integer):
+            key = jax.random.key(int(key))
+        amps, vergences, index, shape = self._prepare(frame, depth, time_s)
+        stacks = self.stacks(vergences, time_s)
+        mean = iterate_intensity(
+            amps,
+            stacks,
+            key,
+            n_it,
+            layer_index=index,
+            phases=self.phases,
+            chunk=self.chunk,
+            progress=progress,
+        )
+        return self._to_image(mean, shape)
+
+    def speckle_free_image(
+        self,
+        frame: Float[ArrayLike, "H W *c"],
+        depth: Float[ArrayLike, "H W"] | float | None = None,
+        *,
+        time_s: float | Float[ArrayLike, ""] = 0.0,
+        tiles: int | None = None,
+    ) -> Float[Array, "h w c"]:
+        """The limit of :meth:`render` over infinitely many iterations, computed directly.
+
+        Exact when no layer is in front of the pupil (:attr:`shift_invariant`); otherwise
+        exact PSFs at the centres of `tiles` x `tiles` tiles (default `psf_tiles`) of the
+        frame, blended bilinearly. Same arguments and output as :meth:`render`.
+        """
+        tiles = self.psf_tiles if tiles is None else _check_int("tiles", tiles, 1)
+        amps, vergences, index, shape = self._prepare(frame, depth, time_s)
+        stacks = self.stacks(vergences, time_s)
+        h, w = shape
+        step, n = self.input_step, self.npix
+        r0, c0 = (n - step * h) // 2, (n - step * w) // 2
+        mean = speckle_free(
+            amps * amps,
+            stacks,
+            layer_index=index,
+            tiles=1 if self.shift_invariant else tiles,
+            region=(r0, r0 + step * h, c0, c0 + step * w),
+            to_bins=lambda x: np.asarray(image_to_bins(jnp.asarray(x))),
+        )
+        return self._to_image(mean, shape)
+
+    def image(self, frame, depth=None, key=0, *, time_s=0.0, **kwargs) -> Array:
+        """:meth:`render` or :meth:`speckle_free_image`, as the model's `mode` says."""
+        if self.mode == "speckle_free":
+            return self.speckle_free_image(frame, depth, time_s=time_s, **kwargs)
+        return self.render(frame, depth, key, time_s=time_s, **kwargs)
+
+    def _to_image(self, bins_cf: Array, shape: tuple[int, int]) -> Array:
+        img = crop_frame(bins_to_image(bins_cf), shape, self.input_step)
+        return jnp.moveaxis(img, 0, -1)
+
+    # ------------------------------------------------------------------ PSF
+
+    def psf(
+        self,
+        light_angle_deg: Float[ArrayLike, " 2"] | None = None,
+        *,
+        depth_mm: Float[ArrayLike, ""] | None = None,
+        time_s: Float[ArrayLike, ""] = 0.0,
+    ) -> Float[Array, "n n *c"]:
+        """The speckle-free PSF of a point source: ``(N, N, C)``, or ``(N, N)`` with one channel.
+
+        **Arguments:**
+
+        - `light_angle_deg`: the source's direction ``(x, y)`` in degrees (x to the right,
+          y up), rounded to the nearest output pixel; None: on the axis. With layers in
+          front of the pupil the PSF depends on it.
+        - `depth_mm`: the source's depth (default the model's `depth_mm`).
+        - `time_s`: time since the last blink (tear film).
+
+        **Returns:** energy per output pixel, centred on pixel ``(N // 2, N // 2)`` whatever
+        the direction (the image of the source moved to the centre), unit energy for a
+        clear pupil (less the light the grid's band does not hold).
+        """
+        n = self.npix
+        z = self.depth_mm if depth_mm is None else _float(depth_mm)
+        stacks = self.stacks(jnp.reshape(1.0 / z, (1,)), time_s)
+        if light_angle_deg is None:
+            bin_yx: Any = (0, 0)
+        else:
+            ang = _float(light_angle_deg)
+            dt = self.sampling.pixel_scale_rad
+            col = jnp.round(jnp.tan(jnp.deg2rad(ang[0])) / dt).astype(jnp.int32)
+            row = jnp.round(jnp.tan(jnp.deg2rad(ang[1])) / dt).astype(jnp.int32)
+            # Image column c -> frequency column -c; image row up (-) -> frequency row -r.
+            bin_yx = ((-row) % n, (-col) % n)
+        psf = jax.vmap(lambda s: point_response(s, bin_yx))(stacks)
+        out = jnp.moveaxis(bins_to_image(psf), 0, -1)
+        return out[..., 0] if out.shape[-1] == 1 else out
+
+    def __call__(self, light_angle_deg: Float[ArrayLike, " 2"] | None = None) -> Array:
+        """The speckle-free PSF (:meth:`psf`): the model interface's call."""
+        return self.psf(light_angle_deg)
+
+    # ------------------------------------------------------------------ config
+
+    def to_config(self) -> dict[str, Any]:
+        """This model's config (see :func:`holographic_to_config`)."""
+        return holographic_to_config(self)
+
+
+# ======================================================================================
+# configuration
+
+_LAYER_KEYS = LAYERS
+_GEOMETRY_KEYS = ("lash_distance_mm", "cornea_distance_mm", "spectacle_distance_mm")
+
+
+def _read_key(sec, where: str):
+    if "seed" in sec.table and "key_data" in sec.table:
+        raise ConfigError(f"{where}: give seed or key_data, not both")
+    key_data = sec.get("key_data", list, None)
+    if key_data is not None:
+        if not key_data or not all(
+            isinstance(v, int) and not isinstance(v, bool) and 0 <= v < 2**32 for v in key_data
+        ):
+            raise ConfigError(
+                f"{where}.key_data must be a list of uint32 integers, got {key_data!r}"
+            )
+        return jax.random.wrap_key_data(np.asarray(key_data, np.uint32))
+    return sec.get("seed", int, 0)
+
+
+def _key_data(key) -> list[int]:
+    return [int(v) for v in np.asarray(jax.random.key_data(key)).ravel()]
+
+
+def _num(x) -> float:
+    arr = np.asarray(x)
+    value = arr.item() if arr.dtype == np.float64 else float(str(np.float32(arr)))
+    return float(value)
+
+
+def _read_tear_film(table: Any, where: str) -> TearFilm:
+    from invglare.io.config import Section
+
+    sec = Section(table, where)
+    args: dict[str, Any] = {
+        "pattern": sec.get("pattern", str, "sinusoid"),
+        "amplitude_um": sec.get("amplitude_um", float, required=True),
+        "scale_mm": sec.get("scale_mm", float, required=True),
+        "key": _read_key(sec, where),
+    }
+    for name in (
+        "angle_deg",
+        "thickness_um",
+        "irregularity_growth_per_s",
+        "thinning_um_per_s",
+        "breakup_time_s",
+        "breakup_growth_mm_per_s",
+        "breakup_edge_mm",
+        "breakup_region_mm",
+        "refractive_index",
+    ):
+        value = sec.get(name, float, None)
+        if value is not None:
+            args[name] = value
+    for name in ("n_modes", "breakup_spots"):
+        value = sec.get(name, int, None)
+        if value is not None:
+            args[name] = value
+    sec.finish()
+    try:
+        return TearFilm(**args)
+    except (ConfigError, PhysicsRangeError) as err:
+        raise type(err)(f"{where}: {err}") from err
+
+
+def _tear_film_table(film: TearFilm) -> dict[str, Any]:
+    out: dict[str, Any] = {
+        "pattern": film.pattern,
+        "amplitude_um": _num(film.amplitude_um),
+        "scale_mm": _num(film.scale_mm),
+        "angle_deg": _num(film.angle_deg),
+        "n_modes": film.n_modes,
+        "refractive_index": film.refractive_index,
+        "thickness_um": _num(film.thickness_um),
+        "irregularity_growth_per_s": _num(film.irregularity_growth_per_s),
+        "thinning_um_per_s": _num(film.thinning_um_per_s),
+        "breakup_spots": film.breakup_spots,
+        "breakup_growth_mm_per_s": _num(film.breakup_growth_mm_per_s),
+        "breakup_edge_mm": _num(film.breakup_edge_mm),
+        "breakup_region_mm": _num(film.breakup_region_mm),
+        "key_data": _key_data(film.key),
+    }
+    t_bu = _num(film.breakup_time_s)
+    if math.isfinite(t_bu):  # TOML writers differ on inf: leave it out (the default)
+        out["breakup_time_s"] = t_bu
+    return out
+
+
+def holographic_from_config(
+    config: dict[str, Any],
+    base_dir: Any = None,
+    *,
+    npix: int | None = None,
+    pixel_scale_deg: float | None = None,
+    wavelengths_nm: Any = None,
+) -> HolographicEye:
+    """Build a :class:`HolographicEye` from a model config (``model.kind = "holographic"``).
+
+    **Arguments:**
+
+    - `config`: the parsed TOML (sections ``model``, ``output``, ``spectrum``).
+    - `base_dir`: where relative paths would be resolved (the model has none; accepted for
+      the common interface).
+    - `npix`, `pixel_scale_deg`, `wavelengths_nm`: overrides of ``output.npix``,
+      ``output.pixel_scale_deg`` and ``spectrum.wavelengths_nm``.
+
+    ```toml
+    [model]
+    kind = "holographic"
+    window_mm = 8.0                # aperture window at the shortest wavelength (or
+                                   #   output.pixel_scale_deg)
+    focus_distance_m = 2.0         # > 0, inf for a relaxed eye (or accommodation_d)
+    depth_m = 2.0                  # the scene's depth without a depth buffer (or depth_mm)
+    mode = "iterations"            # or "speckle_free"
+    iterations = 64
+    phases = "uniform"             # or "quaternary"
+    input_step = 1                 # output pixels per input pixel
+    depth_layers = 1               # or "auto" (from the frustum's near and far planes)
+    psf_tiles = 1                  # speckle-free PSF tiles per axis
+    memory_budget_mb = 1024.0
+    max_pupil_mm = 6.0             # largest pupil a fit may reach (window check)
+    [model.layers]                 # switches of spectacles, lashes, tear_film, pupil, lens
+    lashes = true
+    tear_film = true
+    [model.geometry]               # lash_distance_mm, cornea_distance_mm,
+    lash_distance_mm = 6.0         #   spectacle_distance_mm
+    [model.frustum]                # fov_x_deg, near_m, far_m, depth_encoding,
+    depth_encoding = "linear"      #   depth_unit_mm
+    [model.eye]                    # invglare.aperture.eye.eye_from_config
+    [model.tear_film]              # pattern, amplitude_um, scale_mm, angle_deg, n_modes,
+    pattern = "random"             #   thickness_um, irregularity_growth_per_s,
+    amplitude_um = 0.1             #   thinning_um_per_s, breakup_time_s, breakup_spots,
+    scale_mm = 0.5                 #   breakup_growth_mm_per_s, breakup_edge_mm,
+                                   #   breakup_region_mm, refractive_index, seed / key_data
+    [model.spectacles]             # sphere_d, cylinder_d, axis_deg
+    [output]
+    npix = 512
+    [spectrum]
+    wavelengths_nm = [640.0, 550.0, 460.0]
+    ```
+
+    **Raises:** `ConfigError` naming the key for unknown keys, wrong types or choices;
+    `PhysicsRangeError` for values out of range (a focus distance <= 0, a window too
+    small, a lens or tear film the grid aliases).
+    """
+    from invglare.aperture.eye import eye_from_config
+    from invglare.io.config import Section, check_sections
+
+    del base_dir  # no file references
+    check_sections(config, ("model", "output", "spectrum"), "config")
+    model = Section(config.get("model", {}), "model")
+    kind = model.get("kind", str, required=True)
+    if kind != "holographic":
+        raise ConfigError(
+            f"model.kind = {kind!r}; holographic_from_config reads kind = 'holographic'"
+        )
+    eye = eye_from_config(model.get("eye", dict, required=True), "model.eye")
+    kwargs: dict[str, Any] = {}
+    if "focus_distance_m" in model.table and "accommodation_d" in model.table:
+        raise ConfigError("model: give focus_distance_m or accommodation_d, not both")
+    focus_m = model.get("focus_distance_m", float, None)
+    acc = model.get("accommodation_d", float, None)
+    if focus_m is not None:
+        if not focus_m > 0 or math.isnan(focus_m):
+            raise PhysicsRangeError(
+                f"model.focus_distance_m must be > 0 (inf for a relaxed eye), got {focus_m!r}"
+            )
+        kwargs["focus_distance_mm"] = focus_m * 1000.0
+    elif acc is not None:
+        if not math.isfinite(acc):
+            raise PhysicsRangeError(f"model.accommodation_d must be finite, got {acc!r}")
+        kwargs["focus_distance_mm"] = math.inf if acc == 0 else 1000.0 / acc
+    if "depth_m" in model.table and "depth_mm" in model.table:
+        raise ConfigError("model: give depth_m or depth_mm, not both")
+    depth_m = model.get("depth_m", float, None)
+    depth_mm = model.get("depth_mm", float, None)
+    if depth_m is not None:
+        kwargs["depth_mm"] = depth_m * 1000.0
+    elif depth_mm is not None:
+        kwargs["depth_mm"] = depth_mm
+    window = model.get("window_mm", float, None)
+    kwargs["mode"] = model.choice("mode", MODES, "iterations")
+    kwargs["iterations"] = model.get("iterations", int, 16)
+    kwargs["phases"] = model.choice("phases", PHASES, "uniform")
+    kwargs["input_step"] = model.get("input_step", int, 1)
+    layers_value = model.get("depth_layers", (int, str), 1)
+    if isinstance(layers_value, str) and layers_value != "auto":
+        raise ConfigError(
+            f"model.depth_layers must be an integer >= 1 or 'auto', got {layers_value!r}"
+        )
+    kwargs["depth_layers"] = layers_value
+    kwargs["psf_tiles"] = model.get("psf_tiles", int, 1)
+    kwargs["memory_budget_mb"] = model.get("memory_budget_mb", float, 1024.0)
+    kwargs["max_pupil_mm"] = model.get("max_pupil_mm", float, None)
+    switches = Section(model.get("layers", dict, {}), "model.layers")
+    defaults = {"spectacles": False, "lashes": True, "tear_film": True, "pupil": True, "lens": True}
+    on = [name for name in _LAYER_KEYS if switches.get(name, bool, defaults[name])]
+    switches.finish()
+    kwargs["layers"] = tuple(on)
+    geometry = Section(model.get("geometry", dict, {}), "model.geometry")
+    for name in _GEOMETRY_KEYS:
+        value = geometry.get(name, float, None)
+        if value is not None:
+            kwargs[name] = value
+    geometry.finish()
+    fr = Section(model.get("frustum", dict, {}), "model.frustum")
+    near_m, far_m = fr.get("near_m", float, None), fr.get("far_m", float, None)
+    try:
+        kwargs["frustum"] = Frustum(
+            fov_x_deg=fr.get("fov_x_deg", float, None),
+            near_mm=None if near_m is None else near_m * 1000.0,
+            far_mm=None if far_m is None else far_m * 1000.0,
+            depth_encoding=fr.choice(
+                "depth_encoding", ("linear", "distance", "normalised", "linear01"), "linear"
+            ),
+            depth_unit_mm=fr.get("depth_unit_mm", float, 1000.0),
+        )
+    except (ConfigError, PhysicsRangeError) as err:
+        raise type(err)(f"model.frustum: {err}") from err
+    fr.finish()
+    film_table = model.get("tear_film", dict, None)
+    if film_table is not None:
+        kwargs["tear_film"] = _read_tear_film(film_table, "model.tear_film")
+    spec_table = model.get("spectacles", dict, None)
+    if spec_table is not None:
+        sp = Section(spec_table, "model.spectacles")
+        try:
+            kwargs["spectacles"] = Spectacles(
+                sp.get("sphere_d", float, 0.0),
+                sp.get("cylinder_d", float, 0.0),
+                sp.get("axis_deg", float, 0.0),
+            )
+        except PhysicsRangeError as err:
+            raise PhysicsRangeError(f"model.spectacles: {err}") from err
+        sp.finish()
+    model.finish()
+    output = Section(config.get("output", {}), "output")
+    out_npix = output.get("npix", int, 512)
+    scale = output.get("pixel_scale_deg", float, None)
+    output.finish()
+    spectrum = Section(config.get("spectrum", {}), "spectrum")
+    lams = spectrum.get("wavelengths_nm", (float, list), list(DEFAULT_RGB_NM))
+    spectrum.finish()
+    lams = wavelengths_nm if wavelengths_nm is not None else lams
+    lams = [lams] if isinstance(lams, int | float) else lams
+    if not all(isinstance(v, int | float) and not isinstance(v, bool) for v in lams):
+        raise ConfigError(f"spectrum.wavelengths_nm must be numbers (nm), got {lams!r}")
+    scale = pixel_scale_deg if pixel_scale_deg is not None else scale
+    if scale is not None and window is not None:
+        raise ConfigError("give model.window_mm or output.pixel_scale_deg, not both")
+    return HolographicEye.build(
+        eye,
+        npix=out_npix if npix is None else npix,
+        window_mm=8.0 if window is None and scale is None else window,
+        pixel_scale_deg=scale,
+        wavelengths_nm=tuple(float(v) for v in lams),
+        **kwargs,
+    )
+
+
+def holographic_to_config(model: HolographicEye) -> dict[str, Any]:
+    """The config of a built holographic eye, every choice explicit (inverse of the reader).
+
+    ``holographic_from_config(holographic_to_config(m))`` rebuilds the same model: the
+    sampling is written as ``output.pixel_scale_deg`` (exact), the keys as ``key_data``.
+    """
+    from invglare.aperture.eye import eye_to_config
+
+    if not isinstance(model, HolographicEye):
+        raise ConfigError(
+            f"holographic_to_config needs a HolographicEye, got {type(model).__name__}"
+        )
+    fr = model.frustum
+    frustum: dict[str, Any] = {
+        "depth_encoding": fr.depth_encoding,
+        "depth_unit_mm": fr.depth_unit_mm,
+    }
+    if fr.fov_x_deg is not None:
+        frustum["fov_x_deg"] = fr.fov_x_deg
+    if fr.near_mm is not None:
+        frustum["near_m"] = fr.near_mm / 1000.0
+    if fr.far_mm is not None:
+        frustum["far_m"] = fr.far_mm / 1000.0
+    table: dict[str, Any] = {
+        "kind": "holographic",
+        "accommodation_d": _num(model.accommodation_d),
+        "depth_mm": _num(model.depth_mm),
+        "mode": model.mode,
+        "iterations": model.iterations,
+        "phases": model.phases,
+        "input_step": model.input_step,
+        "depth_layers": model.depth_layers,
+        "psf_tiles": model.psf_tiles,
+        "memory_budget_mb": model.memory_budget_mb,
+        "layers": {name: name in model.layers for name in LAYERS},
+        "geometry": {name: getattr(model, name) for name in _GEOMETRY_KEYS},
+        "frustum": frustum,
+        "eye": eye_to_config(model.eye),
+    }
+    if model.tear_film is not None:
+        table["tear_film"] = _tear_film_table(model.tear_film)
+    if model.spectacles is not None:
+        sp = model.spectacles
+        table["spectacles"] = {
+            "sphere_d": _num(sp.sphere_d),
+            "cylinder_d": _num(sp.cylinder_d),
+            "axis_deg": _num(sp.axis_deg),
+        }
+    return {
+        "model": table,
+        "output": {"npix": model.npix, "pixel_scale_deg": model.pixel_scale_deg},
+        "spectrum": {"wavelengths_nm": list(model.wavelengths_nm)},
+    }
