@@ -7,7 +7,7 @@ base layer) and pass parallel thin layers, carried between them by the angular s
 | layer        | plane (mm in front of the pupil) | transmission                          |
 |--------------|----------------------------------|---------------------------------------|
 | spectacles   | `spectacle_distance_mm` (15.6)   | sphere and cylinder phase             |
-| lashes       | `lash_distance_mm` (6)           | lids and lashes (amplitude)           |
+| lashes       | `lash_distance_mm` (8)           | lids and lashes (amplitude)           |
 | tear film    | `cornea_distance_mm` (3.6)       | ``exp(i k (eta - 1) d)``, a height field |
 | pupil, lens  | 0                                | pupil opening, accommodation phase    |
 
@@ -170,7 +170,7 @@ class HolographicEye(eqx.Module):
     sampling: HoloSampling
     frustum: Frustum
     layers: tuple[str, ...] = eqx.field(static=True)
-    lash_distance_mm: float = eqx.field(static=True, default=6.0)
+    lash_distance_mm: float = eqx.field(static=True, default=8.0)
     cornea_distance_mm: float = eqx.field(static=True, default=3.6)
     spectacle_distance_mm: float = eqx.field(static=True, default=15.6)
     depth_layers: int = eqx.field(static=True, default=1)
@@ -199,7 +199,7 @@ class HolographicEye(eqx.Module):
         spectacles: Spectacles | None = None,
         layers: Any = ("lashes", "tear_film", "pupil", "lens"),
         frustum: Frustum | None = None,
-        lash_distance_mm: float = 6.0,
+        lash_distance_mm: float = 8.0,
         cornea_distance_mm: float = 3.6,
         spectacle_distance_mm: float = 15.6,
         depth_layers: int | str = 1,
@@ -828,7 +828,7 @@ def holographic_from_config(
     lashes = true
     tear_film = true
     [model.geometry]               # lash_distance_mm, cornea_distance_mm,
-    lash_distance_mm = 6.0         #   spectacle_distance_mm
+    lash_distance_mm = 8.0         #   spectacle_distance_mm
     [model.frustum]                # fov_x_deg, near_m, far_m, depth_encoding,
     depth_encoding = "linear"      #   depth_unit_mm
     [model.eye]                    # invglare.aperture.eye.eye_from_config

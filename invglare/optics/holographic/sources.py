@@ -135,7 +135,7 @@ def check_frame(frame: ArrayLike) -> np.ndarray | None:
     bad = ~np.isfinite(arr)
     if bad.any():
         where = tuple(int(i) for i in np.argwhere(bad)[0])
-        raise InputDataError(f"frame holds a non-finite value {arr[where]!r} at {where}")
+        raise InputDataError(f"frame holds a non-finite value {float(arr[where])} at {where}")
     if (arr < 0).any():
         where = tuple(int(i) for i in np.argwhere(arr < 0)[0])
         raise InputDataError(
@@ -167,7 +167,9 @@ def check_depth_buffer(
     bad = ~np.isfinite(arr)
     if bad.any():
         where = tuple(int(i) for i in np.argwhere(bad)[0])
-        raise InputDataError(f"depth buffer holds a non-finite value {arr[where]!r} at {where}")
+        raise InputDataError(
+            f"depth buffer holds a non-finite value {float(arr[where])} at {where}"
+        )
     if frustum.depth_encoding in ("normalised", "linear01"):
         out = (arr < 0) | (arr > 1)
         if out.any():
