@@ -181,6 +181,7 @@ class HolographicEye(eqx.Module):
     psf_tiles: int = eqx.field(static=True, default=1)
     mode: str = eqx.field(static=True, default="iterations")
     memory_budget_mb: float = eqx.field(static=True, default=1024.0)
+    max_pupil_mm: float | None = eqx.field(static=True, default=None)
 
     # ------------------------------------------------------------------ build
 
@@ -325,6 +326,7 @@ class HolographicEye(eqx.Module):
             psf_tiles=psf_tiles,
             mode=mode,
             memory_budget_mb=float(memory_budget_mb),
+            max_pupil_mm=pupil_mm,
         )
         model.check_sampling(pupil_mm)
         return model
@@ -367,7 +369,8 @@ class HolographicEye(eqx.Module):
 
     def _need_radius_mm(self, pupil_mm: float) -> float:
         """Radius (mm) of the disk the light reaching the pupil crosses, plus a margin."""
-        decentre = float(np.hypot(*np.asarray(self.eye.pupil.decentration_mm)))
+        dec = self.eye.pupil.decentration_mm
+        decentre = float(np.hypot(*np.asarray(dec))) if _concrete(dec) else 0.0
         walk = self.base_distance_mm * self.sampling.half_field_rad
         return 0.5 * pupil_mm + decentre + walk + _MARGIN_PX * self.sampling.finest_pitch_mm
 
@@ -379,12 +382,19 @@ class HolographicEye(eqx.Module):
         curvature bends rays by up to ``r / (z - d)``, which must stay within the grid's
         half field ``N dt / 2``: ``z >= d + r / (N dt / 2)``.
         """
-        pupil = float(self.eye.pupil.diameter_mm) if pupil_mm is None else pupil_mm
+        pupil = self._pupil_bound_mm() if pupil_mm is None else pupil_mm
         return self.base_distance_mm + self._need_radius_mm(pupil) / self.sampling.half_field_rad
+
+    def _pupil_bound_mm(self) -> float:
+        """The largest pupil to check for: `max_pupil_mm`, or the eye's when concrete and larger."""
+        bound = 0.0 if self.max_pupil_mm is None else self.max_pupil_mm
+        if _concrete(self.eye.pupil.diameter_mm):
+            bound = max(bound, float(self.eye.pupil.diameter_mm))
+        return bound
 
     def check_sampling(self, pupil_mm: float | None = None, time_s=(0.0,)) -> None:
         """Refuse a window that cannot hold the pupil, or a layer the grid aliases."""
-        pupil = float(self.eye.pupil.diameter_mm) if pupil_mm is None else float(pupil_mm)
+        pupil = self._pupil_bound_mm() if pupil_mm is None else float(pupil_mm)
         s = self.sampling
         need = self._need_radius_mm(pupil)
         window = s.smallest_window_mm
@@ -420,7 +430,8 @@ class HolographicEye(eqx.Module):
                         f"{radius:.3g} mm by {p * radius:.3g} rad, beyond the grid's half field "
                         f"{half:.3g} rad: the grid aliases their phase; raise npix"
                     )
-        if "tear_film" in self.layers and self.tear_film is not None:
+        film = self.tear_film
+        if "tear_film" in self.layers and film is not None and _concrete(*jax.tree.leaves(film)):
             lam = min(s.wavelengths_nm)
             walk = self.cornea_distance_mm * half
             self.tear_film.check_sampled(
