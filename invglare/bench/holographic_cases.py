@@ -14,7 +14,7 @@ the point-source evaluation on the CPU), RGB, one point source per pixel:
 The cases render an ``N x N`` RGB HDR frame (the bundled street-lights scene) through the
 same eye at the paper's size and iterations (16 at 256, 64 at 512, as in both tables):
 a 3 mm pupil, lids and 40 upper lashes 8 mm in front of it, a random tear film at the
-cornea, the lens focused at 2 m, R, G, B at 640, 550, 460 nm, an ``N x N`` grid whose
+cornea, the lens focused at the scene's 2 m, R, G, B at 640, 550, 460 nm, an ``N x N`` grid whose
 window is 8 mm at 460 nm. Each case is one jitted call of
 :meth:`~invglare.models.holographic.HolographicEye.render` (the layers' rasters, the
 transfer functions and every iteration; the model is built before timing):
@@ -80,19 +80,36 @@ def bench_model(n: int, layers: str, depth: bool, iterations: int | None = None)
             thickness_mm=0.06, length_mm=2.5, curvature_per_mm=0.05, root_span_mm=8.0,
         ),
     )  # fmt: skip
+    depth_mm = scene_depth_mm(n)
     return HolographicEye.build(
         eye,
         npix=n,
         window_mm=8.0,
-        focus_distance_mm=2000.0,
-        depth_mm=2000.0,
+        focus_distance_mm=depth_mm,
+        depth_mm=depth_mm,
         tear_film=TearFilm(0.1, 0.4, key=3, pattern="random"),
         layers=LAYER_SETS[layers],
-        frustum=Frustum(near_mm=500.0, far_mm=20000.0),
+        frustum=Frustum(near_mm=1e3 * 0.5, far_mm=20000.0),
         depth_layers=DEPTH_LAYERS if depth else 1,
         iterations=PAPER_ITERATIONS.get(n, 16) if iterations is None else iterations,
         psf_tiles=4,
     )
+
+
+def nearest_depth_mm(n: int) -> float:
+    """The nearest depth the benchmark eye's ``n x n`` grid resolves (its lash plane at 8 mm).
+
+    As :meth:`~invglare.models.holographic.HolographicEye.nearest_depth_mm`, for the 3 mm
+    pupil, written out so that the inputs need no model: about 227 mm at 256, 120 mm at 512.
+    """
+    half_field = 0.5 * n * 460e-6 / 8.0
+    need = 1.5 + 8.0 * half_field + 2 * 8.0 / n
+    return 8.0 + need / half_field
+
+
+def scene_depth_mm(n: int) -> float:
+    """The constant depth of the cases: 2 m, or farther on grids too small to resolve it."""
+    return max(2000.0, 1.5 * nearest_depth_mm(n))
 
 
 def bench_inputs(n: int, depth: bool) -> tuple[np.ndarray, np.ndarray | None]:
@@ -102,9 +119,11 @@ def bench_inputs(n: int, depth: bool) -> tuple[np.ndarray, np.ndarray | None]:
     frame, _ = street_lights_at_night(n, seed=0)
     if not depth:
         return np.asarray(frame), None
-    # Near at the bottom of the frame (the road), far at the top: 0.5 m to 20 m.
+    # Near at the bottom of the frame (the road), far at the top: 0.5 m to 20 m (from 1.5 x
+    # the nearest resolvable depth on grids too small for 0.5 m).
+    near_m = max(0.5, 1.5e-3 * nearest_depth_mm(n))
     rows = np.linspace(1.0, 0.0, n)[:, None] * np.ones((1, n))
-    return np.asarray(frame), (0.5 * 40.0**rows).astype(np.float32)
+    return np.asarray(frame), (near_m * (20.0 / near_m) ** rows).astype(np.float32)
 
 
 def _render_case(layers: str, depth: bool, mode: str = "iterations"):

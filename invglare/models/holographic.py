@@ -499,28 +499,31 @@ class HolographicEye(eqx.Module):
 
     # ------------------------------------------------------------------ sources
 
-    def _prepare(self, frame, depth, time_s, check: bool = True):
-        """Validate the inputs and turn them into amplitudes and depth layers (FFT layout)."""
-        if check:
-            arr = check_frame(frame)
-            if arr is not None:
-                shape = arr.shape
-            else:
-                shape = jnp.shape(frame)
-        else:
-            shape = jnp.shape(frame)
-        img = _float(frame)
-        img = img[None] if img.ndim == 2 else jnp.moveaxis(img, -1, 0)
-        c = img.shape[0]
+    def _validate(self, frame, depth, time_s) -> None:
+        """Check a frame, its depth and the time before any work (concrete values only).
+
+        **Raises:** `InputDataError` for a bad frame or depth buffer (shape, values, channel
+        count, field of view), `PhysicsRangeError` for a constant depth <= 0, a source
+        nearer than the grid resolves, or a tear film that aliases at `time_s`.
+        """
+        arr = check_frame(frame)
+        shape = np.shape(frame) if arr is None else arr.shape
+        if len(shape) not in (2, 3):
+            raise InputDataError(f"frame must have shape (H, W) or (H, W, C), got {shape}")
+        c = 1 if len(shape) == 2 else shape[-1]
         n_ch = self.sampling.n_channels
         if c not in (1, n_ch):
             raise InputDataError(
                 f"the frame has {c} channels (shape {tuple(shape)}) but the eye has {n_ch} "
                 f"wavelengths {self.sampling.wavelengths_nm}; give a mono frame or {n_ch} channels"
             )
-        img = jnp.broadcast_to(img, (n_ch, *img.shape[1:]))
-        h, w = img.shape[1:]
-        step = self.input_step
+        h, w = shape[:2]
+        step, n = self.input_step, self.npix
+        if step * h > n or step * w > n:
+            raise InputDataError(
+                f"a {h} x {w} frame with input step {step} needs a grid of at least "
+                f"{step * max(h, w)} px; the eye's grid is {n} px"
+            )
         if self.frustum.fov_x_deg is not None:
             frame_dt = self.frustum.pixel_scale_rad(w)
             want = step * self.sampling.pixel_scale_rad
@@ -531,37 +534,60 @@ class HolographicEye(eqx.Module):
                     f"{math.degrees(want):.4g} deg per input pixel (pixel_scale_deg "
                     f"{self.pixel_scale_deg:.4g} x input_step {step}); resample the frame"
                 )
-        n = self.npix
+        z_near = None
+        if depth is None:
+            if _concrete(self.depth_mm):
+                z_near = float(self.depth_mm)
+        elif np.ndim(depth) == 0:
+            if _concrete(depth):
+                z_near = float(depth)
+                if not (z_near > 0 and math.isfinite(z_near)):
+                    raise PhysicsRangeError(f"constant depth must be > 0 mm, got {z_near!r}")
+        else:
+            buf = check_depth_buffer(depth, (h, w), self.frustum)
+            if buf is not None and arr is not None:
+                ty, tx = directions(n, self.sampling.pixel_scale_rad)
+                d = place_frame(jnp.asarray(buf, jnp.float32)[None], n, step)[0]
+                z = np.asarray(decode_depth(d, self.frustum, (ty, tx)))
+                lit = (
+                    np.asarray(
+                        place_frame(jnp.asarray(arr.reshape(h, w, -1).sum(-1))[None], n, step)[0]
+                    )
+                    > 0
+                )
+                if lit.any():
+                    z_near = float(z[lit].min())
+        if z_near is not None:
+            nearest = self.nearest_depth_mm()
+            if z_near < nearest:
+                raise PhysicsRangeError(
+                    f"a source at {z_near:.4g} mm is nearer than this grid resolves "
+                    f"({nearest:.4g} mm: its wave's curvature aliases where the pupil's "
+                    "light crosses the window); raise npix or move the near plane out"
+                )
+        if "tear_film" in self.layers and self.tear_film is not None and _concrete(time_s):
+            self.check_sampling(time_s=(float(time_s),))
+
+    def _sources(self, frame, depth):
+        """Amplitudes at their bins, the depth layers' vergences and each bin's layer (jittable)."""
+        img = _float(frame)
+        img = img[None] if img.ndim == 2 else jnp.moveaxis(img, -1, 0)
+        n_ch = self.sampling.n_channels
+        img = jnp.broadcast_to(img, (n_ch, *img.shape[1:]))
+        step, n = self.input_step, self.npix
         placed = place_frame(source_amplitudes(img, step), n, step)
-        ty, tx = directions(n, self.sampling.pixel_scale_rad, placed.dtype)
         if depth is None:
             z = jnp.broadcast_to(self.depth_mm, (n, n)).astype(placed.dtype)
         elif jnp.ndim(depth) == 0:
-            if check and _concrete(depth) and not (float(depth) > 0 and math.isfinite(depth)):
-                raise PhysicsRangeError(f"constant depth must be > 0 mm, got {float(depth)!r}")
             z = jnp.broadcast_to(_float(depth), (n, n)).astype(placed.dtype)
         else:
-            if check:
-                check_depth_buffer(depth, (h, w), self.frustum)
+            ty, tx = directions(n, self.sampling.pixel_scale_rad, placed.dtype)
             d = _float(depth)
             d = d[..., 0] if d.ndim == 3 else d
             d_placed = place_frame(d[None], n, step)[0]
             z_all = decode_depth(d_placed, self.frustum, (ty, tx))
             # Bins without a source get a harmless depth (they carry no light).
             z = jnp.where(placed[0] > 0, z_all, jnp.max(z_all))
-        if check and _concrete(z):
-            present = np.asarray(jnp.sum(placed, axis=0) > 0)
-            if present.any():
-                z_near = float(np.min(np.asarray(z)[present]))
-                nearest = self.nearest_depth_mm()
-                if z_near < nearest:
-                    raise PhysicsRangeError(
-                        f"a source at {z_near:.4g} mm is nearer than this grid resolves "
-                        f"({nearest:.4g} mm: its wave's curvature aliases where the pupil's "
-                        "light crosses the window); raise npix or move the near plane out"
-                    )
-            if "tear_film" in self.layers and self.tear_film is not None and _concrete(time_s):
-                self.check_sampling(time_s=(float(time_s),))
         vergence = 1.0 / z
         weight = jnp.sum(placed, axis=0)
         if self.depth_layers == 1 and depth is not None and jnp.ndim(depth) != 0:
@@ -573,7 +599,7 @@ class HolographicEye(eqx.Module):
         else:
             centres, idx = layer_vergences(vergence, weight, self.depth_layers)
             index = image_to_bins(idx)
-        return image_to_bins(placed), centres, index, (h, w)
+        return image_to_bins(placed), centres, index
 
     # ------------------------------------------------------------------ rendering
 
@@ -604,23 +630,26 @@ class HolographicEye(eqx.Module):
 
         **Raises:** `InputDataError` / `PhysicsRangeError` / `ConfigError` (see
         :meth:`check_sampling` and :func:`~invglare.optics.holographic.sources.check_depth_buffer`).
+
+        **Example:**
+
+        ```python
+        img = model.render(frame, depth_m, key=jax.random.key(0), iterations=64)
+        ```
         """
         n_it = self.iterations if iterations is None else check_iterations(iterations)
         if isinstance(key, int | np.integer):
             key = jax.random.key(int(key))
-        amps, vergences, index, shape = self._prepare(frame, depth, time_s)
-        stacks = self.stacks(vergences, time_s)
-        mean = iterate_intensity(
-            amps,
-            stacks,
-            key,
-            n_it,
-            layer_index=index,
-            phases=self.phases,
-            chunk=self.chunk,
-            progress=progress,
-        )
-        return self._to_image(mean, shape)
+        self._validate(frame, depth, time_s)
+        depth = depth if depth is None or np.ndim(depth) else _float(depth)
+        if progress:
+            amps, vergences, index = self._sources(frame, depth)
+            mean = iterate_intensity(
+                amps, self.stacks(vergences, time_s), key, n_it, layer_index=index,
+                phases=self.phases, chunk=self.chunk, progress=True,
+            )  # fmt: skip
+            return self._to_image(mean, np.shape(frame)[:2])
+        return _render(self, frame, depth, key, n_it, _float(time_s))
 
     def speckle_free_image(
         self,
@@ -637,9 +666,14 @@ class HolographicEye(eqx.Module):
         frame, blended bilinearly. Same arguments and output as :meth:`render`.
         """
         tiles = self.psf_tiles if tiles is None else _check_int("tiles", tiles, 1)
-        amps, vergences, index, shape = self._prepare(frame, depth, time_s)
+        self._validate(frame, depth, time_s)
+        depth = depth if depth is None or np.ndim(depth) else _float(depth)
+        return _speckle_free(self, frame, depth, _float(time_s), tiles)
+
+    def _speckle_free_core(self, frame, depth, time_s, tiles: int) -> Array:
+        amps, vergences, index = self._sources(frame, depth)
         stacks = self.stacks(vergences, time_s)
-        h, w = shape
+        h, w = np.shape(frame)[:2]
         step, n = self.input_step, self.npix
         r0, c0 = (n - step * h) // 2, (n - step * w) // 2
         mean = speckle_free(
@@ -648,9 +682,17 @@ class HolographicEye(eqx.Module):
             layer_index=index,
             tiles=1 if self.shift_invariant else tiles,
             region=(r0, r0 + step * h, c0, c0 + step * w),
-            to_bins=lambda x: np.asarray(image_to_bins(jnp.asarray(x))),
+            to_bins=lambda x: np.asarray(image_to_bins(np.asarray(x))),
         )
-        return self._to_image(mean, shape)
+        return self._to_image(mean, (h, w))
+
+    def _render_core(self, frame, depth, key, iterations: int, time_s) -> Array:
+        amps, vergences, index = self._sources(frame, depth)
+        mean = iterate_intensity(
+            amps, self.stacks(vergences, time_s), key, iterations, layer_index=index,
+            phases=self.phases, chunk=self.chunk,
+        )  # fmt: skip
+        return self._to_image(mean, np.shape(frame)[:2])
 
     def image(self, frame, depth=None, key=0, *, time_s=0.0, **kwargs) -> Array:
         """:meth:`render` or :meth:`speckle_free_image`, as the model's `mode` says."""
@@ -685,16 +727,22 @@ class HolographicEye(eqx.Module):
         the direction (the image of the source moved to the centre), unit energy for a
         clear pupil (less the light the grid's band does not hold).
         """
+        return _psf(
+            self,
+            None if light_angle_deg is None else _float(light_angle_deg),
+            self.depth_mm if depth_mm is None else _float(depth_mm),
+            _float(time_s),
+        )
+
+    def _psf_core(self, light_angle_deg, depth_mm, time_s) -> Array:
         n = self.npix
-        z = self.depth_mm if depth_mm is None else _float(depth_mm)
-        stacks = self.stacks(jnp.reshape(1.0 / z, (1,)), time_s)
+        stacks = self.stacks(jnp.reshape(1.0 / depth_mm, (1,)), time_s)
         if light_angle_deg is None:
             bin_yx: Any = (0, 0)
         else:
-            ang = _float(light_angle_deg)
             dt = self.sampling.pixel_scale_rad
-            col = jnp.round(jnp.tan(jnp.deg2rad(ang[0])) / dt).astype(jnp.int32)
-            row = jnp.round(jnp.tan(jnp.deg2rad(ang[1])) / dt).astype(jnp.int32)
+            col = jnp.round(jnp.tan(jnp.deg2rad(light_angle_deg[0])) / dt).astype(jnp.int32)
+            row = jnp.round(jnp.tan(jnp.deg2rad(light_angle_deg[1])) / dt).astype(jnp.int32)
             # Image column c -> frequency column -c; image row up (-) -> frequency row -r.
             bin_yx = ((-row) % n, (-col) % n)
         psf = jax.vmap(lambda s: point_response(s, bin_yx))(stacks)
@@ -710,6 +758,25 @@ class HolographicEye(eqx.Module):
     def to_config(self) -> dict[str, Any]:
         """This model's config (see :func:`holographic_to_config`)."""
         return holographic_to_config(self)
+
+
+# Jitted at the public boundary: one compiled program per model structure and input shape
+# (validation runs before, on concrete values).
+
+
+@eqx.filter_jit
+def _render(model: HolographicEye, frame, depth, key, iterations: int, time_s) -> Array:
+    return model._render_core(frame, depth, key, iterations, time_s)
+
+
+@eqx.filter_jit
+def _speckle_free(model: HolographicEye, frame, depth, time_s, tiles: int) -> Array:
+    return model._speckle_free_core(frame, depth, time_s, tiles)
+
+
+@eqx.filter_jit
+def _psf(model: HolographicEye, light_angle_deg, depth_mm, time_s) -> Array:
+    return model._psf_core(light_angle_deg, depth_mm, time_s)
 
 
 # ======================================================================================

@@ -169,6 +169,7 @@ def test_input_step_places_fewer_sources_with_the_same_light():
 # ---------------------------------------------------------------------- layers
 
 
+@pytest.mark.slow
 def test_layer_switches_and_base_plane():
     film = TearFilm(0.05, 0.5, key=1, pattern="random")
     kw = dict(npix=64, window_mm=8.0, wavelengths_nm=(550.0,), tear_film=film)
@@ -191,6 +192,7 @@ def test_layer_switches_and_base_plane():
     assert float(jnp.abs(full.psf() - a.psf()).max()) > 1e-4
 
 
+@pytest.mark.slow
 def test_psf_off_the_axis_moves_to_the_centre_and_changes_only_with_layers_in_front():
     model = HolographicEye.build(
         _lash_eye(), npix=64, window_mm=8.0, wavelengths_nm=(550.0,),
@@ -213,7 +215,8 @@ def _example_config():
         return tomllib.load(fh)
 
 
-def test_example_config_builds_and_renders():
+@pytest.mark.slow
+def test_example_config_builds_renders_and_round_trips():
     model = holographic_from_config(_example_config(), EXAMPLE.parent, npix=64)
     assert model.layers == ("lashes", "tear_film", "pupil", "lens")
     assert model.iterations == 64 and model.wavelengths_nm == RGB
@@ -222,20 +225,25 @@ def test_example_config_builds_and_renders():
     frame[24, 24] = 100.0
     img = model.render(frame, key=0, iterations=2)
     assert img.shape == (48, 48, 3) and bool(jnp.all(jnp.isfinite(img)))
+    again = holographic_from_config(holographic_to_config(model))
+    np.testing.assert_allclose(np.asarray(again.psf()), np.asarray(model.psf()), atol=1e-7)
 
 
 def test_config_round_trip_rebuilds_the_same_model():
     model = holographic_from_config(_example_config(), None, npix=64)
-    again = holographic_from_config(holographic_to_config(model))
+    table = holographic_to_config(model)
+    again = holographic_from_config(table)
+    assert holographic_to_config(again) == table and model.to_config() == table
     assert again.layers == model.layers and again.npix == model.npix
     assert again.sampling.pixel_scale_rad == pytest.approx(model.sampling.pixel_scale_rad, 1e-14)
     assert again.frustum == model.frustum and again.chunk == model.chunk
-    np.testing.assert_allclose(np.asarray(again.psf()), np.asarray(model.psf()), atol=1e-7)
+    a, b = (eqx.filter(m, eqx.is_inexact_array) for m in (model, again))
+    for x, y in zip(jax.tree.leaves(a), jax.tree.leaves(b), strict=True):
+        np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
     np.testing.assert_array_equal(
         np.asarray(jax.random.key_data(again.tear_film.key)),
         np.asarray(jax.random.key_data(model.tear_film.key)),
     )
-    assert model.to_config() == holographic_to_config(model)
 
 
 def test_config_errors_name_the_key():
@@ -422,8 +430,9 @@ def test_jit_equals_eager_and_vmap_over_keys_equals_a_loop(small):
 
 def test_vmap_over_wavelengths_equals_one_wavelength_at_a_time():
     model = HolographicEye.build(
-        _lash_eye(), npix=64, window_mm=8.0, wavelengths_nm=RGB,
-        focus_distance_mm=2000.0, layers=("lashes", "pupil", "lens"),
+        _clear_eye(2.5), npix=64, window_mm=8.0, wavelengths_nm=RGB,
+        focus_distance_mm=2000.0, tear_film=TearFilm(0.05, 0.5, key=1, pattern="random"),
+        layers=("tear_film", "pupil", "lens"),
     )  # fmt: skip
     v = jnp.asarray([1 / 2000.0])
 
@@ -431,10 +440,9 @@ def test_vmap_over_wavelengths_equals_one_wavelength_at_a_time():
         return point_response(model.channel_stack(lam, v), (0, 0))
 
     batched = jax.jit(jax.vmap(psf_at))(jnp.asarray(RGB))
+    one = jax.jit(psf_at)
     for i, lam in enumerate(RGB):
-        np.testing.assert_allclose(
-            np.asarray(batched[i]), np.asarray(psf_at(jnp.asarray(lam))), atol=1e-7
-        )
+        np.testing.assert_allclose(np.asarray(batched[i]), np.asarray(one(lam)), atol=1e-7)
     np.testing.assert_allclose(
         np.asarray(jnp.moveaxis(model.psf(), -1, 0)), np.asarray(bins_to_image(batched)), atol=1e-6
     )
