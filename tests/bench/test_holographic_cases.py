@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import jax
 import numpy as np
+import pytest
 
 from invglare.bench.holographic_cases import (
     HOLOGRAPHIC_CASES,
@@ -30,7 +31,8 @@ def test_cases_are_named_once_and_quote_the_paper():
 
 def test_nearest_depth_formula_is_the_models():
     for n in (32, 256):
-        assert bench_model(n, "lashes_tear", False).nearest_depth_mm() == nearest_depth_mm(n)
+        model = bench_model(n, "lashes_tear", False)
+        assert model.nearest_depth_mm() == pytest.approx(nearest_depth_mm(n), rel=1e-12)
 
 
 def test_small_cases_run():
