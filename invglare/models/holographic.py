@@ -75,6 +75,7 @@ from invglare.optics.holographic.stack import (
     iteration_bytes,
     point_response,
     speckle_free,
+    stack_bytes,
 )
 from invglare.optics.holographic.tear_film import TearFilm
 
@@ -290,12 +291,14 @@ class HolographicEye(eqx.Module):
         if not (math.isfinite(memory_budget_mb) and memory_budget_mb > 0):
             raise ConfigError(f"memory_budget_mb must be > 0, got {memory_budget_mb!r}")
         per_iteration = iteration_bytes(npix, sampling.n_channels, depth_layers)
+        fixed = stack_bytes(npix, sampling.n_channels, depth_layers, 3)
         budget = memory_budget_mb * 2**20
-        if per_iteration > budget:
+        if fixed + per_iteration > budget:
             raise ConfigError(
-                f"one iteration of a {npix}^2 grid with {sampling.n_channels} channels needs "
-                f"about {per_iteration / 2**20:.0f} MB, above memory_budget_mb = "
-                f"{memory_budget_mb:g}; raise the budget or lower npix"
+                f"a {npix}^2 grid with {sampling.n_channels} channels and {depth_layers} depth "
+                f"layer(s) needs about {(fixed + per_iteration) / 2**20:.0f} MB (the layers' "
+                f"arrays and one iteration), above memory_budget_mb = {memory_budget_mb:g}; "
+                "raise the budget or lower npix"
             )
         if chunk is None:
             # On a CPU one draw at a time is fastest (its fields stay in cache; measured at
@@ -303,7 +306,7 @@ class HolographicEye(eqx.Module):
             # accelerators want batches as large as the budget allows.
             chunk = 1 if jax.default_backend() == "cpu" else 32
         chunk = _check_int("chunk", chunk, 1)
-        chunk = max(1, min(chunk, iterations, int(budget // per_iteration)))
+        chunk = max(1, min(chunk, iterations, int((budget - fixed) // per_iteration)))
         grid = sampling.grid(min(sampling.wavelengths_nm))
         eye = eye.with_stamp_windows(grid)
         model = cls(

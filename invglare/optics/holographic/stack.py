@@ -58,6 +58,7 @@ __all__ = [
     "point_response",
     "speckle_contrast",
     "speckle_free",
+    "stack_bytes",
     "stack_field",
     "tile_weights",
 ]
@@ -133,6 +134,12 @@ def iteration_bytes(npix: int, n_channels: int, n_layers: int, itemsize: int = 8
     """
     per_channel = (8 + min(n_layers - 1, 2)) * itemsize * npix * npix
     return n_channels * per_channel + 2 * npix * npix * itemsize  # + the shared phasors
+
+
+def stack_bytes(npix: int, n_channels: int, n_layers: int, n_planes: int, itemsize: int = 8) -> int:
+    """Memory (bytes) of the channels' stacks: a front per depth layer, a kernel and a
+    transmission per further plane (`n_planes` planes in front of the pupil at most)."""
+    return n_channels * (n_layers + 2 * n_planes) * itemsize * npix * npix
 
 
 def iterate_intensity(
