@@ -301,14 +301,17 @@ def speckle_free(
                 ky, kx = (int(v[0]) for v in np.nonzero(to_bins(img)))
                 bin_yx = (ky, kx)
                 weight = jnp.asarray(to_bins(np.outer(wy[ty], wx[tx])), dtype)
-            for layer in range(n_layers):
-                psf = jax.vmap(lambda s, b=bin_yx, ly=layer: point_response(s, b, ly))(stacks)
+            # One scan over the depth layers (not an unrolled loop: the program stays small).
+            def add(acc, layer, bin_yx=bin_yx, weight=weight):
+                psf = jax.vmap(lambda st: point_response(st, bin_yx, layer))(stacks)
                 part = intensity_bins
                 if n_layers > 1:
                     part = jnp.where(layer_index == layer, part, 0.0)
                 if weight is not None:
                     part = part * weight
-                spectrum = spectrum + jnp.fft.rfft2(part) * jnp.fft.rfft2(psf.astype(dtype))
+                return acc + jnp.fft.rfft2(part) * jnp.fft.rfft2(psf.astype(dtype)), None
+
+            spectrum, _ = jax.lax.scan(add, spectrum, jnp.arange(n_layers))
     return jnp.fft.irfft2(spectrum, s=(n, n))
 
 
