@@ -36,6 +36,7 @@ thickness, length, ...), the spectacles' powers, and the constant scene depth
 
 from __future__ import annotations
 
+import dataclasses
 import itertools
 import math
 from typing import Any
@@ -95,6 +96,33 @@ MODES = ("iterations", "speckle_free")
 DEFAULT_RGB_NM = (640.0, 550.0, 460.0)
 #: Pixels of margin kept between the light the pupil needs and the window's edge.
 _MARGIN_PX = 2
+#: Width (px) of the smooth taper at the edge of a cropped stack's grid.
+TAPER_PX = 12
+
+
+def fast_even_size(n: int) -> int:
+    """The smallest even integer >= `n` with no prime factor above 5 (a fast FFT size)."""
+    m = max(2, n + (n % 2))
+    while True:
+        k = m
+        for p in (2, 3, 5):
+            while k % p == 0:
+                k //= p
+        if k == 1:
+            return m
+        m += 2
+
+
+def crop_taper(m: int, taper_px: int) -> np.ndarray:
+    """A separable raised-cosine window: 1 inside, falling to 0 over `taper_px` at each edge.
+
+    Centred layout (like the rasters). Smooth, so the cropped field has no edge to diffract
+    from; the light the pupil receives never crosses the taper.
+    """
+    i = np.arange(m)
+    edge = np.minimum(i, m - 1 - i).astype(float)
+    w = np.where(edge >= taper_px, 1.0, np.sin(0.5 * np.pi * (edge + 0.5) / taper_px) ** 2)
+    return np.outer(w, w)
 
 
 def _float(x) -> Array:
@@ -183,6 +211,7 @@ class HolographicEye(eqx.Module):
     mode: str = eqx.field(static=True, default="iterations")
     memory_budget_mb: float = eqx.field(static=True, default=1024.0)
     max_pupil_mm: float | None = eqx.field(static=True, default=None)
+    layer_npix: int = eqx.field(static=True, default=0)
 
     # ------------------------------------------------------------------ build
 
@@ -213,6 +242,7 @@ class HolographicEye(eqx.Module):
         memory_budget_mb: float = 1024.0,
         chunk: int | None = None,
         max_pupil_mm: float | None = None,
+        layer_npix: int | None = None,
     ) -> HolographicEye:
         """Choose the sampling and check every choice before any work.
 
@@ -242,6 +272,10 @@ class HolographicEye(eqx.Module):
           the budget holds, at most 32), capped by the budget.
         - `max_pupil_mm`: the largest pupil the model will be given (a fit's upper
           bound); default the eye's. The window is checked for it.
+        - `layer_npix`: the layers' grid ``m <= N`` (a cropped stack, see
+          :class:`~invglare.optics.holographic.ChannelStack`); default the smallest fast
+          size that holds the pupil's light and a taper of :data:`TAPER_PX` (``N`` with
+          spectacles on); ``N`` runs the layers on the whole grid.
 
         **Raises:** `ConfigError` for bad choices; `PhysicsRangeError` for a focus distance
         <= 0, a window too small for the pupil, a lens or tear film the grid aliases.
@@ -330,7 +364,22 @@ class HolographicEye(eqx.Module):
             mode=mode,
             memory_budget_mb=float(memory_budget_mb),
             max_pupil_mm=pupil_mm,
+            layer_npix=npix,
         )
+        need_px = 2 * (math.ceil(model._need_radius_mm(pupil_mm) / sampling.finest_pitch_mm))
+        least = need_px + 2 * TAPER_PX
+        if layer_npix is None:
+            # Cropped by default; not with spectacles, whose phase the crop reproduces only to
+            # 5e-5-8e-4 of the PSF's peak (measured for -0.5 D at 15.6 mm; 3e-6 without).
+            with_glasses = "spectacles" in layers and spectacles is not None
+            layer_npix = npix if with_glasses else min(npix, fast_even_size(least))
+        layer_npix = _check_int("layer_npix", layer_npix, 8)
+        if layer_npix > npix or (layer_npix < npix and layer_npix < least):
+            raise PhysicsRangeError(
+                f"layer_npix = {layer_npix} must be <= npix = {npix} and, when smaller, hold "
+                f"the pupil's light and the taper: >= {least}"
+            )
+        model = dataclasses.replace(model, layer_npix=layer_npix)
         model.check_sampling(pupil_mm)
         return model
 
@@ -456,8 +505,9 @@ class HolographicEye(eqx.Module):
         from invglare.optics.sampling import ApertureGrid
 
         lam = _float(wavelength_nm)
-        n = self.npix
-        grid = ApertureGrid(n, lam * 1e-6 / (n * self.sampling.pixel_scale_rad))
+        n, m = self.npix, self.layer_npix
+        # The layers' grid: the central m x m samples of the channel's N x N grid.
+        grid = ApertureGrid(m, lam * 1e-6 / (n * self.sampling.pixel_scale_rad))
         shift = jnp.fft.ifftshift
 
         def element(name: str):
@@ -470,7 +520,8 @@ class HolographicEye(eqx.Module):
         opening = self.eye.pupil.coverage(grid)
         if "pupil" in self.layers:
             last = self.eye.pupil_transmission(grid)
-            gain = 1.0 / jnp.mean(opening)
+            # The clear pupil's share of the N x N window (the crop holds all of it).
+            gain = n * n / jnp.sum(opening)
         else:
             last = jnp.ones_like(opening)
             gain = jnp.ones((), opening.dtype)
@@ -491,9 +542,11 @@ class HolographicEye(eqx.Module):
             )
         else:
             first, transmissions, kernels = last, [], ()
+        if m < n:
+            first = first * crop_taper(m, TAPER_PX)
         front = shift(chirps * first[None], axes=(-2, -1))
         trans = tuple(shift(t.astype(front.dtype)) for t in transmissions)
-        return ChannelStack(front, kernels, trans, gain)
+        return ChannelStack(front, kernels, trans, gain, n)
 
     def stacks(self, vergences_per_mm, time_s=0.0) -> ChannelStack:
         """Every channel's stack (leading channel axis)."""
@@ -905,6 +958,7 @@ def holographic_from_config(
     psf_tiles = 1                  # speckle-free PSF tiles per axis
     memory_budget_mb = 1024.0
     max_pupil_mm = 6.0             # largest pupil a fit may reach (window check)
+    layer_npix = 256               # the layers' grid (default: what the pupil's light needs)
     [model.layers]                 # switches of spectacles, lashes, tear_film, pupil, lens
     lashes = true
     tear_film = true
@@ -978,6 +1032,7 @@ def holographic_from_config(
     kwargs["psf_tiles"] = model.get("psf_tiles", int, 1)
     kwargs["memory_budget_mb"] = model.get("memory_budget_mb", float, 1024.0)
     kwargs["max_pupil_mm"] = model.get("max_pupil_mm", float, None)
+    kwargs["layer_npix"] = model.get("layer_npix", int, None)
     switches = Section(model.get("layers", dict, {}), "model.layers")
     defaults = {"spectacles": False, "lashes": True, "tear_film": True, "pupil": True, "lens": True}
     on = [name for name in _LAYER_KEYS if switches.get(name, bool, defaults[name])]
@@ -1078,6 +1133,8 @@ def holographic_to_config(model: HolographicEye) -> dict[str, Any]:
         "depth_layers": model.depth_layers,
         "psf_tiles": model.psf_tiles,
         "memory_budget_mb": model.memory_budget_mb,
+        "max_pupil_mm": model.max_pupil_mm,
+        "layer_npix": model.layer_npix,
         "layers": {name: name in model.layers for name in LAYERS},
         "geometry": {name: getattr(model, name) for name in _GEOMETRY_KEYS},
         "frustum": frustum,
