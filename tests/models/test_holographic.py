@@ -480,3 +480,18 @@ def test_cropped_stack_equals_the_full_grid():
     assert HolographicEye.build(_lash_eye(3.0), **glasses).layer_npix == 128
     with pytest.raises(PhysicsRangeError, match="layer_npix"):
         HolographicEye.build(_lash_eye(3.0), layer_npix=40, **kw)
+
+
+def test_progress_bar_path_and_mode_dispatch_give_the_same_images(small):
+    frame = np.random.default_rng(2).random((32, 32)).astype(np.float32)
+    key = jax.random.key(9)
+    plain = small.render(frame, key=key, iterations=3)
+    shown = small.render(frame, key=key, iterations=3, progress=True)
+    np.testing.assert_allclose(np.asarray(shown), np.asarray(plain), rtol=1e-5, atol=1e-7)
+    np.testing.assert_allclose(
+        np.asarray(small.image(frame, key=key, iterations=3)), np.asarray(plain), atol=1e-7
+    )
+    free = dataclasses.replace(small, mode="speckle_free")
+    np.testing.assert_allclose(
+        np.asarray(free.image(frame)), np.asarray(small.speckle_free_image(frame)), atol=1e-7
+    )
