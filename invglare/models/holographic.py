@@ -42,7 +42,7 @@ from __future__ import annotations
 import dataclasses
 import itertools
 import math
-from typing import Any
+from typing import Any, ClassVar
 
 import equinox as eqx
 import jax
@@ -156,6 +156,21 @@ def check_iterations(iterations) -> int:
     return int(iterations)
 
 
+def _check_angle(angle: Array, batched: bool) -> None:
+    """Light directions ``(2,)`` or ``(K, 2)`` (x, y deg); concrete ones finite, within 90 deg."""
+    expected = "(K, 2)" if batched else "(2,)"
+    if angle.ndim != (2 if batched else 1) or angle.shape[-1] != 2:
+        raise PhysicsRangeError(
+            f"light_angle_deg must have shape {expected} (x, y angles in deg), got {angle.shape}"
+        )
+    if _concrete(angle):
+        arr = np.asarray(angle, dtype=float)
+        if not np.all(np.isfinite(arr)) or np.any(np.abs(arr) >= 90.0):
+            raise PhysicsRangeError(
+                f"light_angle_deg must be finite and within (-90, 90) deg, got {arr.tolist()}"
+            )
+
+
 def focus_to_accommodation_d(focus_distance_mm: float) -> float:
     """Accommodation (D) of an eye focused at `focus_distance_mm` (> 0; ``inf``: 0 D)."""
     f = float(focus_distance_mm)
@@ -193,6 +208,10 @@ class HolographicEye(eqx.Module):
     limit = model.speckle_free_image(frame)                             # the same, n -> inf
     ```
     """
+
+    #: The model interface's class variables: a PSF centred on the light's image; static.
+    centre: ClassVar[str] = "light"
+    animated: ClassVar[bool] = False
 
     eye: EyeAperture
     accommodation_d: Float[Array, ""] = eqx.field(converter=_float)
@@ -808,9 +827,80 @@ class HolographicEye(eqx.Module):
         out = jnp.moveaxis(bins_to_image(psf), 0, -1)
         return out[..., 0] if out.shape[-1] == 1 else out
 
-    def __call__(self, light_angle_deg: Float[ArrayLike, " 2"] | None = None) -> Array:
-        """The speckle-free PSF (:meth:`psf`): the model interface's call."""
+    def __call__(
+        self, light_angle_deg: Float[ArrayLike, " 2"] | None = None, *, state: Any = None
+    ) -> Array:
+        """The speckle-free PSF of a light at `light_angle_deg` (:meth:`psf`).
+
+        The model interface's call: ``(N, N)`` for one wavelength, ``(N, N, C)`` otherwise,
+        centred on the light's own image point. The model is static (`state` must be None;
+        the tear film's time is :meth:`psf`'s `time_s`).
+        """
+        if state is not None:
+            raise ConfigError(
+                "HolographicEye is a static model and takes no state; give the tear film's "
+                "time to psf(time_s=...) or render(time_s=...)"
+            )
+        if light_angle_deg is not None:
+            _check_angle(_float(light_angle_deg), batched=False)
         return self.psf(light_angle_deg)
+
+    def batch(
+        self, light_angles_deg: Float[ArrayLike, "K 2"], batch_size: int | None = None
+    ) -> Array:
+        """PSFs of many lights ``(K, N, N[, C])``; one PSF repeated when shift-invariant."""
+        angles = _float(light_angles_deg)
+        _check_angle(angles, batched=True)
+        if self.shift_invariant:
+            one = self.psf()
+            return jnp.broadcast_to(one, (angles.shape[0], *one.shape))
+        if batch_size is None:
+            return jax.vmap(self.psf)(angles)
+        return jax.lax.map(self.psf, angles, batch_size=int(batch_size))
+
+    def core_radius_px(self) -> float | None:
+        """Radius (output pixels) of the Airy core, ``1.22 lambda / D``, at the longest lambda."""
+        d = self.eye.pupil.diameter_mm
+        if not _concrete(d):
+            return None
+        return 1.22 * max(self.wavelengths_nm) * 1e-6 / float(d) / self.sampling.pixel_scale_rad
+
+    def header(self) -> dict[str, Any]:
+        """Plain values describing the PSF and images for a file header."""
+        return {
+            "method": "holographic layered eye (Novosad & Ziegler)",
+            "normalisation": "energy per pixel; unit energy through a clear pupil, less the "
+            "light beyond the grid's band",
+            "layers": list(self.layers),
+            "iterations": self.iterations,
+            "mode": self.mode,
+            "depthLayers": self.depth_layers,
+            "accommodationD": float(self.accommodation_d)
+            if _concrete(self.accommodation_d)
+            else None,
+        }
+
+    def sized_for(self, others) -> HolographicEye:
+        """A copy whose lash stamp windows, window check and crop hold `others` too.
+
+        `others` are the same model at other parameter values (a fit's corners): the
+        lashes' stamp windows take the largest element of all, and the pupil bound (window
+        and nearest-depth checks, the crop of the layers' grid) the largest pupil.
+        """
+        others = list(others)
+        for o in others:
+            if not isinstance(o, HolographicEye):
+                raise ConfigError(f"sized_for takes HolographicEye models, got {type(o).__name__}")
+        grid = self.sampling.grid(min(self.wavelengths_nm))
+        eye = self.eye.with_stamp_windows(grid, also=[o.eye for o in others])
+        pupils = [self._pupil_bound_mm(), *(o._pupil_bound_mm() for o in others)]
+        bigger = dataclasses.replace(self, eye=eye, max_pupil_mm=max(pupils))
+        need_px = 2 * math.ceil(bigger._need_radius_mm(max(pupils)) / self.sampling.finest_pitch_mm)
+        if self.layer_npix < self.npix and self.layer_npix < need_px + 2 * TAPER_PX:
+            least = min(self.npix, fast_even_size(need_px + 2 * TAPER_PX))
+            bigger = dataclasses.replace(bigger, layer_npix=least)
+        bigger.check_sampling(max(pupils))
+        return bigger
 
     # ------------------------------------------------------------------ config
 

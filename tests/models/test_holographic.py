@@ -495,3 +495,23 @@ def test_progress_bar_path_and_mode_dispatch_give_the_same_images(small):
     np.testing.assert_allclose(
         np.asarray(free.image(frame)), np.asarray(small.speckle_free_image(frame)), atol=1e-7
     )
+
+
+def test_model_interface_methods(small):
+    assert HolographicEye.centre == "light" and HolographicEye.animated is False
+    assert small.shift_invariant and small.wavelengths_nm == (550.0,)
+    psfs = small.batch(jnp.asarray([[0.0, 0.0], [0.05, 0.02]]))
+    assert psfs.shape == (2, 64, 64)
+    np.testing.assert_allclose(np.asarray(psfs[1]), np.asarray(small()), atol=1e-7)
+    # 1.22 lambda / D over the pixel: 1.22 * 550 nm / 2.5 mm / (550 nm / 8 mm) = 3.9 px.
+    assert small.core_radius_px() == pytest.approx(1.22 * 8.0 / 2.5)
+    assert small.header()["layers"] == ["pupil", "lens"]
+    with pytest.raises(ConfigError, match="static model"):
+        small(state=1)
+    with pytest.raises(PhysicsRangeError, match=r"shape \(2,\)"):
+        small(jnp.zeros(3))
+    wide = eqx.tree_at(lambda m: m.eye.pupil.diameter_mm, small, 3.5)
+    sized = small.sized_for([wide])
+    assert sized.max_pupil_mm == 3.5 and sized.layer_npix >= small.layer_npix
+    with pytest.raises(PhysicsRangeError, match="need a window"):
+        small.sized_for([eqx.tree_at(lambda m: m.eye.pupil.diameter_mm, small, 7.9)])
