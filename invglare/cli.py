@@ -128,6 +128,15 @@ def render(
     fps: Annotated[
         float | None, typer.Option(help="Frame rate of the animation (default: the model's).")
     ] = None,
+    iterations: Annotated[
+        int | None,
+        typer.Option(help="Random-phase draws averaged by a whole-scene model (holographic)."),
+    ] = None,
+    depth: Annotated[
+        Path | None,
+        typer.Option(help="Depth buffer (EXR) of the scene for a holographic model."),
+    ] = None,
+    seed: Annotated[int, typer.Option(help="Seed of a holographic model's phases.")] = 0,
 ) -> None:
     """Render a model's glare onto an HDR scene: EXR stays linear, PNG is tone-mapped.
 
@@ -135,7 +144,10 @@ def render(
     and lids move frame by frame) into an .mp4, a .gif or a folder of linear EXR frames.
     A veiling-glare model (lens ghosts) gives each of the --max-bright brightest pixels
     above --threshold the ghosts of its own direction (--mode does not apply); so does a
-    Kakimoto model with masking = 'position' with its glare PSF (--mode billboard).
+    Kakimoto model with masking = 'position' with its glare PSF (--mode billboard). A
+    holographic eye (model.kind = 'holographic') renders the whole scene from its pixels
+    as point sources, averaging --iterations random-phase draws (--depth: the depth
+    buffer; a Z channel of the scene is used when there is one).
     """
     from invglare.commands.render import run_render
 
@@ -151,6 +163,9 @@ def render(
         pixel_scale_deg,
         frames=frames,
         fps=fps,
+        iterations=iterations,
+        depth=depth,
+        seed=seed,
     )
 
 

@@ -31,10 +31,12 @@ from invglare._core.allocator import retain_freed_memory
 from invglare.bench.cases import CASES as STATIC_CASES
 from invglare.bench.cases import Case
 from invglare.bench.fit import FIT_CASES
+from invglare.bench.holographic_cases import HOLOGRAPHIC_CASES, paper_markdown
 from invglare.bench.peer_cases import PEER_CASES, cpu_info
 from invglare.bench.sample import SAMPLE_CASES
 from invglare.bench.temporal_cases import TEMPORAL_CASES, stage_markdown
 from invglare.bench.timing import load_1m, measure
+from invglare.bench.torch_cases import TORCH_CASES, overhead_markdown
 from invglare.bench.veiling_cases import VEILING_CASES
 from invglare.errors import ConfigError
 
@@ -45,9 +47,16 @@ BUDGET_S = 20.0
 
 #: Per-size cases that run with every selection, like the floors: the ratios use them.
 REFERENCES = ("fft_jax",)
-#: Every per-size case: the static models, the temporal model's frame pipeline, and the
-#: veiling series against the ghost count.
-CASES: tuple[Case, ...] = (*STATIC_CASES, *TEMPORAL_CASES, *VEILING_CASES)
+#: Every per-size case: the static models, the temporal model's frame pipeline, the
+#: veiling series against the ghost count, the holographic eye against the paper's rows,
+#: and the torch layer against the same JAX call.
+CASES: tuple[Case, ...] = (
+    *STATIC_CASES,
+    *TEMPORAL_CASES,
+    *VEILING_CASES,
+    *HOLOGRAPHIC_CASES,
+    *TORCH_CASES,
+)
 
 #: Header notes of bench.md (also in bench.json's meta).
 NOTES = (
@@ -381,8 +390,9 @@ def render_markdown(records: list[dict], meta: dict, fit_records: list[dict] | N
                 f"| {_num(r.get('first_call_s'), '.2f')} | {r.get('repeats', '')} "
                 f"| {_num(r.get('cpu_per_wall'), '.2f')} | {_num(r.get('load_1m'), '.1f')} |"
             )
-        stages = stage_markdown(records)
-        lines += ["", *stages] if stages else []
+        for section in (stage_markdown, paper_markdown, overhead_markdown):
+            extra = section(records)
+            lines += ["", *extra] if extra else []
         lines += ["", "Cases:", ""]
         descriptions = {r["case"]: r.get("description", "") for r in records}
         lines += [f"- `{name}`: {descriptions[name]}" for name in names]

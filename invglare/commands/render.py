@@ -60,6 +60,9 @@ def run_render(
     pixel_scale_deg: float | None,
     frames: int | None = None,
     fps: float | None = None,
+    iterations: int | None = None,
+    depth: Path | None = None,
+    seed: int = 0,
 ) -> None:
     import jax.numpy as jnp
 
@@ -68,6 +71,9 @@ def run_render(
 
     if frames is not None or fps is not None:
         run_animation(scene, model_path, out, frames, fps, pixel_scale_deg)
+        return
+    if iterations is not None or depth is not None:
+        run_scene_render(scene, model_path, out, tonemap_name, exposure, iterations, depth, seed)
         return
     if mode not in MODES:
         raise ConfigError(f"--mode {mode!r} is not one of {', '.join(MODES)}")
@@ -90,6 +96,9 @@ def run_render(
             else {}
         ),
     )
+    if model.renders_scenes:
+        run_scene_render(scene, model_path, out, tonemap_name, exposure, None, None, seed, model)
+        return
     if model.centre == "axis":
         from invglare.render.ghost_frames import render_ghosts
 
@@ -364,3 +373,59 @@ def run_animation(
             finally:
                 writer.close()
     log.info("wrote %s (%d frames at %g frames/s, %s)", out, frames, model.fps, target)
+
+
+def run_scene_render(
+    scene: Path,
+    model_path: Path,
+    out: Path,
+    tonemap_name: str,
+    exposure: float,
+    iterations: int | None,
+    depth: Path | None,
+    seed: int,
+    model=None,
+) -> None:
+    """``invglare render`` of a model that renders whole scenes (the holographic eye).
+
+    The frame and its depth (a ``Z`` channel of the scene, `depth`, or none: the model's
+    constant depth) are handed to the model as a whole; `iterations` random-phase draws
+    are averaged, with a progress bar. An EXR stays linear at the model's pixel scale; a
+    PNG is tone-mapped (Reinhard by default).
+    """
+    import jax
+
+    from invglare.files.depth_frames import read_frame_and_depth
+
+    if out.suffix.lower() not in OUTPUT_SUFFIXES:
+        raise ConfigError(f"--out must end in {' or '.join(OUTPUT_SUFFIXES)}, got {out.name!r}")
+    if iterations is not None and (isinstance(iterations, bool) or iterations < 1):
+        raise ConfigError(f"--iterations must be an integer >= 1, got {iterations!r}")
+    model = _load_model(model_path) if model is None else model
+    if not model.renders_scenes:
+        raise ConfigError(
+            f"--iterations and --depth are for models that render whole scenes (e.g. "
+            f"model.kind = 'holographic'); {model_path} builds a {type(model).__name__}"
+        )
+    loaded = read_frame_and_depth(scene, depth)
+    scale = float(model.pixel_scale_deg)
+    step = getattr(model, "input_step", 1)
+    if loaded.pixel_scale_deg is not None and not np.isclose(
+        loaded.pixel_scale_deg, scale * step, rtol=1e-3
+    ):
+        # The eye's grid fixes the angle of a source pixel: the scene is read at that scale.
+        log.warning(
+            "%s says %.4g deg/px; %s places its pixels %.4g deg apart (its grid's scale)",
+            scene,
+            loaded.pixel_scale_deg,
+            model_path,
+            scale * step,
+        )
+    log.info(
+        "rendering %s through %s (depth: %s)", scene, type(model).__name__, loaded.depth_source
+    )
+    result = model.render_scene(
+        loaded.frame, loaded.depth, jax.random.key(seed), iterations=iterations, progress=True
+    )
+    params = _tonemap_params(out, tonemap_name, exposure)
+    _write(out, np.asarray(result), scale, model, "scene", scene, tonemap_name, params)

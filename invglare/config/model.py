@@ -10,6 +10,7 @@ model kind, and the tables that kind reads (usually ``[output]`` and ``[spectrum
 | `camera`    | :class:`~invglare.models.kakimoto.KakimotoGlare`       | `config.raster`           |
 | `veiling`   | :class:`~invglare.models.veiling.VeilingGlare`         | `config.veiling`          |
 | `temporal`  | :class:`~invglare.models.temporal.TemporalGlare`       | `config.temporal`         |
+| `holographic` | :class:`~invglare.models.holographic.HolographicEye` | `config.holographic`      |
 
 :func:`build_model` reads a config through its kind's reader; a built model writes its
 config back with ``model.to_config()``. Adding a kind is its model file in
@@ -35,6 +36,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+from invglare.config.holographic import holographic_from_config
 from invglare.config.raster import GridRequest, read_raster_model
 from invglare.config.section import Section
 from invglare.config.temporal import temporal_from_config
@@ -43,6 +45,7 @@ from invglare.errors import ConfigError
 from invglare.fit.ghost_report import ghost_report_sections
 from invglare.models.aperture_psf import AperturePSF
 from invglare.models.base import AbstractGlareModel
+from invglare.models.holographic import HolographicEye
 from invglare.models.kakimoto import KakimotoGlare
 from invglare.models.temporal import TemporalGlare
 from invglare.models.veiling import VeilingGlare
@@ -165,3 +168,4 @@ register_model_kind("eye", KakimotoGlare, read_raster_model)
 register_model_kind("camera", KakimotoGlare, read_raster_model)
 register_model_kind("veiling", VeilingGlare, veiling_from_config, report=ghost_report_sections)
 register_model_kind("temporal", TemporalGlare, temporal_from_config)
+register_model_kind("holographic", HolographicEye, holographic_from_config)

@@ -28,6 +28,11 @@ through this interface alone:
   return themselves;
 - ``model.to_config()``: the config table that rebuilds it (``build_model``).
 
+A model that renders a whole scene itself, from every pixel rather than light by light
+(the holographic eye's point sources), sets the class variable ``renders_scenes`` and
+implements ``render_scene(frame, depth, key, *, iterations=None, progress=False)``;
+``invglare render`` then hands it the frame (and its depth buffer) as a whole.
+
 **Light directions** are ``(x, y)`` in degrees: x to the right, y up, as seen looking out
 through the aperture; ``None`` means the model's own default direction (on axis, or the
 direction leaf a fit adjusts). **State**: animated models take the frame's state as the
@@ -41,7 +46,7 @@ Adding a model is its file here plus one registration in :mod:`invglare.config.k
 # AbstractClassVar annotations as objects when the class is created.
 import abc
 from collections.abc import Sequence
-from typing import Any
+from typing import Any, ClassVar
 
 import equinox as eqx
 import jax
@@ -67,6 +72,8 @@ class AbstractGlareModel(eqx.Module):
     pixel_scale_deg: eqx.AbstractVar[float | Float[Array, ""]]
     centre: eqx.AbstractClassVar[str]
     animated: eqx.AbstractClassVar[bool]
+    #: True for a model that renders a whole scene itself (see the module docstring).
+    renders_scenes: ClassVar[bool] = False
 
     @abc.abstractmethod
     def __call__(

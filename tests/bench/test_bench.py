@@ -32,7 +32,7 @@ from invglare.errors import ConfigError
 
 TINY = 32
 #: Cases whose compilation takes minutes on a loaded 2-core machine.
-HEAVY = ("eye_", "kakimoto_")
+HEAVY = ("eye_", "kakimoto_", "holo_", "torch_")
 
 
 def _float_leaves(tree) -> list[np.ndarray]:
