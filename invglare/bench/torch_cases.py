@@ -208,8 +208,20 @@ _SAME = "the same jitted JAX programs called with JAX arrays (the twin of {})"
 TORCH_CASES: tuple[Case, ...] = (
     Case("torch_psf", "pipeline", f"{_PSF}, no gradient", _psf),
     Case("torch_psf_jax", "pipeline", _SAME.format("torch_psf"), _psf_jax),
-    Case("torch_psf_grad", "pipeline", f"{_PSF}: forward + backward of sum(w * PSF)", _psf_grad),
-    Case("torch_psf_grad_jax", "pipeline", _SAME.format("torch_psf_grad"), _psf_grad_jax),
+    Case(
+        "torch_psf_grad",
+        "pipeline",
+        f"{_PSF}: forward + backward of sum(w * PSF)",
+        _psf_grad,
+        forward="torch_psf",
+    ),
+    Case(
+        "torch_psf_grad_jax",
+        "pipeline",
+        _SAME.format("torch_psf_grad"),
+        _psf_grad_jax,
+        forward="torch_psf_jax",
+    ),
     Case("torch_glare", "pipeline", f"{_GLARE}, no gradient", _glare),
     Case("torch_glare_jax", "pipeline", _SAME.format("torch_glare"), _glare_jax),
     Case(
@@ -217,8 +229,15 @@ TORCH_CASES: tuple[Case, ...] = (
         "pipeline",
         f"{_GLARE}: forward + backward of sum(w * out), image and diameter",
         _glare_grad,
+        forward="torch_glare",
     ),
-    Case("torch_glare_grad_jax", "pipeline", _SAME.format("torch_glare_grad"), _glare_grad_jax),
+    Case(
+        "torch_glare_grad_jax",
+        "pipeline",
+        _SAME.format("torch_glare_grad"),
+        _glare_grad_jax,
+        forward="torch_glare_jax",
+    ),
 )
 
 #: torch case -> its JAX twin.

@@ -28,6 +28,7 @@ import numpy as np
 from invglare.errors import InvglareError
 from invglare.fit.observation import Forward
 from invglare.fit.params import ParameterSpace
+from invglare.models.base import AbstractGlareModel
 
 #: At most this many free model parameters are bounded by their box's corners (2**n
 #: evaluations of the element sizes); with more, the model's own windows are kept.
@@ -54,10 +55,13 @@ def fit_stamp_windows(space: ParameterSpace, forward: Forward) -> Forward:
     (:meth:`~invglare.models.base.AbstractGlareModel.sized_for`) for a copy sized for
     itself at every corner, with no extra headroom.
 
-    `forward` comes back unchanged where this cannot be decided: no free model parameter,
+    `forward` comes back unchanged where this cannot be decided: a model that does not
+    implement the model interface, no free model parameter,
     more than :data:`MAX_CORNER_PARAMETERS` of them, an infinite bound, traced values, or
     a corner the model refuses.
     """
+    if not isinstance(forward.model, AbstractGlareModel):
+        return forward  # a plain callable model (a user's own Module) has no raster to size
     leaves = jax.tree_util.tree_leaves(eqx.filter(forward, eqx.is_array))
     if any(isinstance(leaf, jax.core.Tracer) for leaf in leaves):
         return forward

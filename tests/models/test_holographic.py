@@ -16,7 +16,9 @@ from helpers import x64
 
 from invglare._core.grids import AngularGrid
 from invglare.aperture.eye import EyeAperture, Eyelashes, Eyelids, Pupil
+from invglare.config.holographic import holographic_from_config
 from invglare.config.model import build_model
+from invglare.config.raster import GridRequest
 from invglare.errors import ConfigError, InputDataError, PhysicsRangeError
 from invglare.models.holographic import (
     HolographicEye,
@@ -254,8 +256,12 @@ def test_config_errors_name_the_key():
     with pytest.raises(ConfigError, match=r"model\.layers\.lashes must be true or false"):
         build_model(bad, npix=64)
     bad = {**cfg, "model": {**cfg["model"], "kind": "eye"}}
-    with pytest.raises(ConfigError, match="kind = 'holographic'"):
+    # Through the registry the eye kind's reader names the first key it does not know ...
+    with pytest.raises(ConfigError, match="unknown key 'focus_distance_m'"):
         build_model(bad, npix=64)
+    # ... and the holographic reader called directly refuses another kind.
+    with pytest.raises(ConfigError, match="kind = 'holographic'"):
+        holographic_from_config(bad, None, GridRequest(64, None, None), "test")
     bad = {**cfg, "model": {**cfg["model"], "depth_layers": "many"}}
     with pytest.raises(ConfigError, match="depth_layers"):
         build_model(bad, npix=64)

@@ -60,7 +60,7 @@ sys.meta_path.insert(0, NoTorch())
 def test_without_torch_the_error_names_the_extra():
     code = _NO_TORCH + (
         "try:\n    import invglare.torch\nexcept ImportError as e:\n    print(e)\n"
-        "from invglare.config.section import load_toml\n"
+        "from invglare.files.toml import load_toml\n"
         "from invglare.config.model import build_model\n"
         f"model = build_model(load_toml({str(ROOT / 'examples' / 'circle.toml')!r}), npix=64)\n"
         "import numpy as np\npsf = np.asarray(model())\n"
