@@ -12,10 +12,12 @@ from typing import Any
 import jax
 
 from invglare.aperture.eye import EyeAperture, Eyelashes, Eyelids, Gratings, Particles, Pupil
+from invglare.aperture.eye.lash_layout import LashLayout
 from invglare.aperture.eye.schema import (
     EYE_KEYS,
     GRATING_KEYS,
     LASH_KEYS,
+    LAYOUT_KEYS,
     LIDS_KEYS,
     PARTICLE_KEYS,
     PUPIL_KEYS,
@@ -32,7 +34,24 @@ _READERS = {
     "str": lambda sec, key, default: sec.get(key, str, default),
     "point": Section.point,
     "key": Section.key_data,
+    "layout": lambda sec, key, default: _layout(sec.section(key)),
 }
+
+
+def _layout(sec: Section | None) -> LashLayout | None:
+    """A row's ``layout`` table: one list of numbers per leaf, all required."""
+    if sec is None:
+        return None
+    sec.only(*LAYOUT_KEYS)
+    values = {leaf: sec.number_list(leaf) for leaf in LAYOUT_KEYS}
+    sec.finish()
+    sizes = {len(v) for v in values.values()}
+    if len(sizes) != 1:
+        raise ConfigError(
+            f"{sec.where}: every list must have one entry per lash, got lengths "
+            + ", ".join(f"{k} {len(v)}" for k, v in values.items())
+        )
+    return sec.build(LashLayout, **values)
 
 
 def eye_from_config(table: dict[str, Any], where: str = "eye") -> EyeAperture:
@@ -55,6 +74,9 @@ def eye_from_config(table: dict[str, Any], where: str = "eye") -> EyeAperture:
     count = 60                   #   angular_spread_deg, spacing_jitter, thickness_mm,
                                  #   length_mm, curvature_per_mm, root_span_mm,
                                  #   length_spread, thickness_spread, segments, key_data
+    [eye.lashes_upper.layout]    # optional: each lash's own values, one list entry per lash
+    root_mm = [...]              #   (n_max entries each): root_mm, angle_deg, length_mm,
+                                 #   thickness_mm, curvature_per_mm (all required)
     [eye.lashes_lower]           # as lashes_upper
     [[eye.particles]]            # region and count (required), n_max, radius_mean_mm,
     region = "lens_nucleus"      #   radius_spread, region_radius_mm, key_data

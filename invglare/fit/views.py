@@ -38,6 +38,7 @@ from jax.scipy.special import log_ndtr
 from jaxtyping import Array, ArrayLike, Bool, Float
 
 from invglare.errors import ConfigError
+from invglare.fit.lash_prior import layout_priors, prior_residuals
 from invglare.fit.observation import Forward, Observation, check_target
 from invglare.fit.params import ParameterSpace
 from invglare.fit.specialise import specialise_forward
@@ -508,8 +509,10 @@ class ResidualFn(eqx.Module):
     """Residuals of a fit as an optimistix function ``fn(latent, args) -> vector``.
 
     `latent` is the unconstrained vector of `space`; the residual is the
-    concatenation over views of ``sqrt(weight) * residuals``. `args` is unused
-    (the data live in the module, so `jit` sees them as arguments, not constants).
+    concatenation over views of ``sqrt(weight) * residuals``, then the residuals of the
+    joint `priors` of the free parameters (a fitted eyelash layout's, see
+    :mod:`invglare.fit.lash_prior`). `args` is unused (the data live in the module, so
+    `jit` sees them as arguments, not constants).
     """
 
     space: ParameterSpace = eqx.field(static=True)
@@ -519,6 +522,7 @@ class ResidualFn(eqx.Module):
     views: tuple
     names: tuple[str, ...] = eqx.field(static=True)
     weights: tuple[float, ...] = eqx.field(static=True)
+    priors: tuple = ()
 
     def forward_at(self, latent: Float[Array, " p"] | Sequence[Array]) -> Forward:
         """The forward model with the free parameters set from `latent` (a vector, or a
@@ -557,6 +561,9 @@ class ResidualFn(eqx.Module):
             math.sqrt(wt) * v(ctx).astype(self.target.dtype)
             for v, wt in zip(self.views, self.weights, strict=True)
         ]
+        if self.priors:
+            fwd = self.forward_at(list(parts))
+            weighted.append(prior_residuals(self.priors, fwd).astype(self.target.dtype))
         return jnp.concatenate(weighted)
 
     def loss(self, latent: Float[Array, " p"]) -> Float[Array, ""]:
@@ -642,4 +649,5 @@ def make_residual_fn(
         views=tuple(built),
         names=tuple(names),
         weights=tuple(weights),
+        priors=layout_priors(space, forward_template),
     )

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import equinox as eqx
@@ -11,8 +12,10 @@ from jaxtyping import Array, ArrayLike, Float
 from invglare._core.checks import as_float, check_range, choose
 from invglare._core.grids import ApertureGrid
 from invglare.aperture._checks import check_finite, check_static_int
+from invglare.aperture.eye.lash_layout import LashLayout, slot_positions
 from invglare.aperture.eye.pool import AbstractPool, dtype_of, unit_draws
 from invglare.aperture.eye.pupil import LIDS, Eyelids
+from invglare.errors import ConfigError
 from invglare.aperture.shapes.stamps import polyline_log_transmission
 
 
@@ -43,6 +46,14 @@ class Eyelashes(AbstractPool):
     - `segments`: straight segments per lash (static, default 8); each chord departs
       from the parabola by at most ``curvature * length**2 / (8 * segments**2)`` (under
       a micrometre for the defaults with a curvature of 0.05 /mm).
+    - `layout`: a :class:`~invglare.aperture.eye.lash_layout.LashLayout` of ``n_max``
+      lashes, or None (default). With a layout every lash is where the layout puts it
+      (root, direction, length, width, curvature: per-lash parameters a fit can free,
+      ``upper_lashes.layout.angle_deg[i]``) and the key draws nothing; the population
+      parameters above are then those of the distribution the lashes come from (see
+      :func:`~invglare.aperture.eye.lash_layout.layout_prior_terms`), and only `count`
+      still changes the image, through the weights. :meth:`with_layout` freezes the
+      current draw into a layout.
     - `stamp_bound_mm`, `stamp_half_px`: static stamp-window overrides (see
       :meth:`EyeAperture.with_stamp_windows`); leave them None for automatic windows.
 
@@ -65,6 +76,7 @@ class Eyelashes(AbstractPool):
     length_spread: Float[Array, ""] = eqx.field(converter=as_float, default=0.2)
     thickness_spread: Float[Array, ""] = eqx.field(converter=as_float, default=0.2)
     segments: int = eqx.field(static=True, default=8)
+    layout: LashLayout | None = None
     stamp_bound_mm: float | None = eqx.field(static=True, default=None)
     stamp_half_px: int | None = eqx.field(static=True, default=None)
 
@@ -85,6 +97,11 @@ class Eyelashes(AbstractPool):
         check_range(f"{owner} root_span_mm", self.root_span_mm, 0.0, lo_open=True, unit="mm")
         check_range(f"{owner} length_spread", self.length_spread, 0.0, 0.999)
         check_range(f"{owner} thickness_spread", self.thickness_spread, 0.0, 0.999)
+        if self.layout is not None and self.layout.size != self.n_max:
+            raise ConfigError(
+                f"{owner} layout describes {self.layout.size} lashes; the pool holds "
+                f"n_max = {self.n_max}"
+            )
 
     def _draws(self):
         dtype = dtype_of(self.length_mm, self.thickness_mm, self.mean_angle_deg)
@@ -93,28 +110,45 @@ class Eyelashes(AbstractPool):
         thickness = self.thickness_mm * (1.0 + self.thickness_spread * (2.0 * u[:, 1] - 1.0))
         return u[:, 2], z[:, 0], length, thickness
 
+    def drawn_layout(self) -> LashLayout:
+        """The layout the key draws at the current population parameters (module docstring)."""
+        jitter_u, angle_z, length, thickness = self._draws()
+        slots, spacing = slot_positions(self.count, self.root_span_mm, self.n_max, length.dtype)
+        return LashLayout(
+            root_mm=slots + self.spacing_jitter * spacing * (jitter_u - 0.5),
+            angle_deg=self.mean_angle_deg + self.angular_spread_deg * angle_z,
+            length_mm=length,
+            thickness_mm=thickness,
+            curvature_per_mm=jnp.broadcast_to(self.curvature_per_mm, length.shape),
+        )
+
+    def current_layout(self) -> LashLayout:
+        """The layout the lashes are drawn with: :attr:`layout`, or else the key's draw."""
+        return self.layout if self.layout is not None else self.drawn_layout()
+
+    def with_layout(self, layout: LashLayout | None = None) -> Eyelashes:
+        """A copy carrying `layout` (default: the current draw, frozen; same image)."""
+        return dataclasses.replace(
+            self, layout=self.drawn_layout() if layout is None else layout
+        )
+
     def polylines(
         self, lids: Eyelids, shift_mm: ArrayLike = (0.0, 0.0)
     ) -> tuple[Float[Array, "n_max s+1 2"], Float[Array, " n_max"], Float[Array, " n_max"]]:
         """Vertices (mm), thickness (mm) and weight of every lash of the pool."""
-        jitter_u, angle_z, length, thickness = self._draws()
-        dtype = length.dtype
-        i = jnp.arange(self.n_max, dtype=dtype)
-        spacing = self.root_span_mm / jnp.maximum(self.count, 1.0)
-        x_root = (i + 0.5) * spacing - 0.5 * self.root_span_mm
-        x_root = x_root + self.spacing_jitter * spacing * (jitter_u - 0.5)
-        roots, normals = lids.margin(self.lid, x_root, shift_mm)
-        angle = jnp.arctan2(normals[:, 1], normals[:, 0]) + jnp.deg2rad(
-            self.mean_angle_deg + self.angular_spread_deg * angle_z
-        )
+        lay = self.current_layout()
+        length = lay.length_mm
+        roots, normals = lids.margin(self.lid, lay.root_mm, shift_mm)
+        angle = jnp.arctan2(normals[:, 1], normals[:, 0]) + jnp.deg2rad(lay.angle_deg)
         d = jnp.stack([jnp.cos(angle), jnp.sin(angle)], -1)
         d_perp = jnp.stack([-d[:, 1], d[:, 0]], -1)
-        s = jnp.linspace(0.0, 1.0, self.segments + 1, dtype=dtype)[None, :] * length[:, None]
-        bend = 0.5 * self.curvature_per_mm * s * s
+        s = jnp.linspace(0.0, 1.0, self.segments + 1, dtype=length.dtype)[None, :]
+        s = s * length[:, None]
+        bend = 0.5 * lay.curvature_per_mm[:, None] * s * s
         points = (
             roots[:, None, :] + s[..., None] * d[:, None, :] + bend[..., None] * d_perp[:, None]
         )
-        return points, thickness, self.weights()
+        return points, lay.thickness_mm, self.weights()
 
     def stamp_bound(self) -> Float[Array, ""]:
         """Largest half-extent (mm) of the pixels one lash segment claims.
@@ -124,9 +158,10 @@ class Eyelashes(AbstractPool):
         at most the curvature times a segment's arc). It does not depend on the lids, so
         a gradient through the lid opening needs no fixed window.
         """
-        _, _, length, thickness = self._draws()
-        arc = length * jnp.sqrt(1.0 + (self.curvature_per_mm * length) ** 2) / self.segments
-        bend = jnp.minimum(jnp.abs(self.curvature_per_mm) * arc, 0.5 * math.pi)
+        lay = self.current_layout()
+        length, thickness, kappa = lay.length_mm, lay.thickness_mm, lay.curvature_per_mm
+        arc = length * jnp.sqrt(1.0 + (kappa * length) ** 2) / self.segments
+        bend = jnp.minimum(jnp.abs(kappa) * arc, 0.5 * math.pi)
         return jnp.max(0.5 * arc + 0.5 * thickness * (1.0 + jnp.tan(0.5 * bend)))
 
     def log_transmission(

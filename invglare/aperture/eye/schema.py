@@ -14,10 +14,12 @@ import numpy as np
 
 from invglare.aperture._plain import plain
 from invglare.aperture.eye.aperture import EyeAperture
+from invglare.aperture.eye.lash_layout import LAYOUT_LEAVES
 from invglare.errors import ConfigError
 
 # The keys of each component's table, in constructor order, with the kind of their values:
-# "number", "int", "point" ([x, y]), "str", "key" (a list of uint32 key data).
+# "number", "int", "point" ([x, y]), "str", "key" (a list of uint32 key data), "layout"
+# (a table of per-lash lists, :data:`LAYOUT_KEYS`; written only where the row has one).
 
 #: Keys of ``[eye.pupil]``.
 PUPIL_KEYS = {
@@ -49,7 +51,11 @@ LASH_KEYS = {
     "thickness_spread": "number",
     "segments": "int",
     "key_data": "key",
+    "layout": "layout",
 }
+#: Keys of a row's ``layout`` table (``[eye.lashes_upper.layout]``): one list per leaf, one
+#: entry per lash of the pool (see :class:`~invglare.aperture.eye.lash_layout.LashLayout`).
+LAYOUT_KEYS = LAYOUT_LEAVES
 #: Keys of each ``[[eye.particles]]``.
 PARTICLE_KEYS = {
     "region": "str",
@@ -85,6 +91,10 @@ def _component_table(component, keys: dict[str, str]) -> dict[str, Any]:
     for key, kind in keys.items():
         if kind == "key":
             out[key] = [int(v) for v in np.asarray(jax.random.key_data(component.key)).ravel()]
+        elif kind == "layout":
+            layout = getattr(component, key)
+            if layout is not None:
+                out[key] = {leaf: plain(getattr(layout, leaf)) for leaf in LAYOUT_KEYS}
         elif kind in ("int", "str"):
             out[key] = getattr(component, key)
         else:

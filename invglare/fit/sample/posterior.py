@@ -21,6 +21,7 @@ from jaxtyping import Array, ArrayLike, Bool, Float, Int
 from scipy.special import ndtr
 
 from invglare.errors import ConfigError
+from invglare.fit.lash_prior import joint_log_prior, layout_priors
 from invglare.fit.observation import CENSORING, Forward, check_target
 from invglare.fit.params import ParameterSpace
 from invglare.fit.specialise import specialise_forward
@@ -104,6 +105,8 @@ class LogPosterior(eqx.Module):
     censoring: str = eqx.field(static=True, default="survival")
     likelihood: str = eqx.field(static=True, default="pixels")
     residual_scale: float = eqx.field(static=True, default=1.0)
+    #: Joint priors of the free parameters (a fitted eyelash layout's, invglare.fit.lash_prior).
+    priors: tuple = ()
 
     def log_likelihood(self, latent: Float[Array, " p"]) -> Float[Array, ""]:
         """The log-likelihood at latent `latent` (see :mod:`invglare.fit.sample.run`)."""
@@ -119,7 +122,8 @@ class LogPosterior(eqx.Module):
     def log_prior(self, latent: Float[Array, " p"]) -> Float[Array, ""]:
         """Log prior of the physical values plus the log-Jacobian of the latent transform."""
         x = self.space.from_latent(latent)
-        return self.space.log_prior(x) + self.space.log_det_jacobian(latent)
+        joint = joint_log_prior(self.priors, self.space.apply(self.forward, x))
+        return self.space.log_prior(x) + self.space.log_det_jacobian(latent) + joint
 
     def __call__(self, latent: Float[Array, " p"]) -> Float[Array, ""]:
         prior = self.log_prior(latent)
@@ -200,6 +204,7 @@ def make_log_posterior(
         censoring=censoring,
         likelihood=likelihood,
         residual_scale=float(residual_scale),
+        priors=layout_priors(space, forward_template),
     )
 
 
