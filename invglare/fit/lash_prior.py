@@ -86,7 +86,7 @@ class LayoutPrior(eqx.Module):
         return jnp.concatenate([z, norm[None]])
 
     def log_density(self, tree: Any) -> Float[Array, ""]:
-        """``log prior`` of the free leaves, normalised: ``-sum(z**2)/2 - sum(log sd) - k/2 log 2 pi``."""
+        """The free leaves' normalised log prior, ``-sum(z**2)/2 - sum(log sd) - k log(2 pi)/2``."""
         z, log_sd, _ = self._terms(tree)
         return -0.5 * jnp.sum(z * z) - jnp.sum(log_sd) - 0.5 * z.shape[0] * math.log(2 * math.pi)
 

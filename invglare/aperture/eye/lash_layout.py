@@ -13,13 +13,14 @@ The generative model (what :meth:`Eyelashes.drawn_layout` draws) and the prior i
 implies, for lash ``i`` of a row of `count` lashes with slots ``s = root_span / count``
 apart:
 
-| leaf               | drawn as                                    | prior (normal)              |
-|--------------------|---------------------------------------------|-----------------------------|
-| `root_mm`          | ``(i + 1/2) s - span / 2 + jitter s (u - 1/2)`` | mean the slot, sd ``jitter s / sqrt(12)`` |
-| `angle_deg`        | ``mean_angle + spread z``                    | ``N(mean_angle, spread)`` (exact) |
-| `length_mm`        | ``length (1 + length_spread (2u - 1))``      | mean `length`, sd ``length length_spread / sqrt(3)`` |
-| `thickness_mm`     | ``thickness (1 + thickness_spread (2u - 1))`` | mean `thickness`, sd ``thickness thickness_spread / sqrt(3)`` |
-| `curvature_per_mm` | the row's `curvature_per_mm`                 | ``N(curvature, curvature_sd)`` |
+- `root_mm`: drawn ``(i + 1/2) s - span / 2 + jitter s (u - 1/2)``; prior mean the slot,
+  sd ``jitter s / sqrt(12)``;
+- `angle_deg`: drawn ``mean_angle + spread z``; prior ``N(mean_angle, spread)`` (exact);
+- `length_mm`: drawn ``length (1 + length_spread (2u - 1))``; prior mean `length`, sd
+  ``length length_spread / sqrt(3)``;
+- `thickness_mm`: drawn as the length with `thickness_spread`; prior mean `thickness`, sd
+  ``thickness thickness_spread / sqrt(3)``;
+- `curvature_per_mm`: drawn as the row's; prior ``N(curvature, CURVATURE_SD_PER_MM)``.
 
 (``u ~ U(0, 1)``, ``z ~ N(0, 1)``.) The uniform draws are given the normal prior of the
 same mean and variance: smooth, as a least-squares fit needs; each standard deviation is
@@ -116,7 +117,10 @@ def prior_moments(lashes) -> dict[str, tuple[Array, Array]]:
     raw = {
         "root_mm": (slots, lashes.spacing_jitter * spacing * sd12 * ones),
         "angle_deg": (lashes.mean_angle_deg * ones, lashes.angular_spread_deg * ones),
-        "length_mm": (lashes.length_mm * ones, lashes.length_mm * lashes.length_spread * sd3 * ones),
+        "length_mm": (
+            lashes.length_mm * ones,
+            lashes.length_mm * lashes.length_spread * sd3 * ones,
+        ),
         "thickness_mm": (
             lashes.thickness_mm * ones,
             lashes.thickness_mm * lashes.thickness_spread * sd3 * ones,

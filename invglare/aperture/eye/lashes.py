@@ -15,8 +15,8 @@ from invglare.aperture._checks import check_finite, check_static_int
 from invglare.aperture.eye.lash_layout import LashLayout, slot_positions
 from invglare.aperture.eye.pool import AbstractPool, dtype_of, unit_draws
 from invglare.aperture.eye.pupil import LIDS, Eyelids
-from invglare.errors import ConfigError
 from invglare.aperture.shapes.stamps import polyline_log_transmission
+from invglare.errors import ConfigError
 
 
 class Eyelashes(AbstractPool):
@@ -128,9 +128,7 @@ class Eyelashes(AbstractPool):
 
     def with_layout(self, layout: LashLayout | None = None) -> Eyelashes:
         """A copy carrying `layout` (default: the current draw, frozen; same image)."""
-        return dataclasses.replace(
-            self, layout=self.drawn_layout() if layout is None else layout
-        )
+        return dataclasses.replace(self, layout=self.drawn_layout() if layout is None else layout)
 
     def polylines(
         self, lids: Eyelids, shift_mm: ArrayLike = (0.0, 0.0)
