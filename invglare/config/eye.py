@@ -34,14 +34,23 @@ _READERS = {
     "str": lambda sec, key, default: sec.get(key, str, default),
     "point": Section.point,
     "key": Section.key_data,
-    "layout": lambda sec, key, default: _layout(sec.section(key)),
+    "layout": lambda sec, key, default: _layout(sec, key),
 }
 
 
-def _layout(sec: Section | None) -> LashLayout | None:
-    """A row's ``layout`` table: one list of numbers per leaf, all required."""
-    if sec is None:
+def _layout(parent: Section, key: str) -> LashLayout | str | None:
+    """A row's ``layout``: a table of one list of numbers per leaf (all required), or the
+    string ``"drawn"`` (the key's draw, frozen into a layout once the row is built)."""
+    value = parent.get(key, (str, dict), None)
+    if value is None:
         return None
+    if isinstance(value, str):
+        if value != "drawn":
+            raise ConfigError(
+                f"{parent.where}.{key} must be a table of per-lash lists or 'drawn', got {value!r}"
+            )
+        return value
+    sec = parent.section(key)
     sec.only(*LAYOUT_KEYS)
     values = {leaf: sec.number_list(leaf) for leaf in LAYOUT_KEYS}
     sec.finish()
@@ -76,7 +85,8 @@ def eye_from_config(table: dict[str, Any], where: str = "eye") -> EyeAperture:
                                  #   length_spread, thickness_spread, segments, key_data
     [eye.lashes_upper.layout]    # optional: each lash's own values, one list entry per lash
     root_mm = [...]              #   (n_max entries each): root_mm, angle_deg, length_mm,
-                                 #   thickness_mm, curvature_per_mm (all required)
+                                 #   thickness_mm, curvature_per_mm (all required); or
+                                 #   layout = "drawn" in [eye.lashes_upper]: the key's draw
     [eye.lashes_lower]           # as lashes_upper
     [[eye.particles]]            # region and count (required), n_max, radius_mean_mm,
     region = "lens_nucleus"      #   radius_spread, region_radius_mm, key_data
@@ -168,7 +178,11 @@ def _component(
         args["key"] = key
     if "count" in args and "n_max" not in args:
         args["n_max"] = max(1, math.ceil(args["count"]))
-    return sec.build(cls, **args)
+    drawn = args.get("layout") == "drawn"
+    if drawn:
+        del args["layout"]
+    built = sec.build(cls, **args)
+    return built.with_layout() if drawn else built
 
 
 def _wrap_key(data, where: str) -> jax.Array:

@@ -35,6 +35,9 @@ init = 3.3                       # or a range [2.5, 4.0] the starts are drawn fr
 prior = "uniform"                # or ["normal", mean, std], ["lognormal", mean_log, std_log]
 transform = "auto"               # auto, log, logit, identity
 nuisance = false                 # default: true for "obs.*" paths (kept at init in every start)
+# A path naming a whole vector leaf (a lash layout's "model.aperture.upper_lashes.layout.
+# angle_deg") frees each element with these bounds; indices = [12, 13, 14] picks some.
+# Lash angles left without init start from the photo's streaks (invglare.fit.streaks).
 
 [[discrete]]                     # a static choice (integer) tried value by value
 path = "model.aperture.diaphragm.n_blades"   # its parameter path, as in [[free]]
@@ -412,6 +415,7 @@ def load_fit(
 
     from invglare.fit import Forward, Observation, ParameterSpace
     from invglare.fit.starts import draw_starts, photo_guesses
+    from invglare.fit.streaks import lash_guesses
 
     config_path = Path(path)
     config = load_toml(config_path)
@@ -460,7 +464,9 @@ def load_fit(
     guess = Observation.from_target(target, **obs_fixed)
     forward = Forward(model, guess)
 
-    params, nuisance, ranges = read_free(config.get("free"), forward, photo_guesses(target, guess))
+    guesses = photo_guesses(target, guess)
+    guesses.update(lash_guesses(target, forward, guesses))  # lash angles from the streaks
+    params, nuisance, ranges = read_free(config.get("free"), forward, guesses)
     space = ParameterSpace(params, nuisance)
     space.check(forward)
     discrete = read_discrete(config.get("discrete"), model_config, forward)

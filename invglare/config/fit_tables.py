@@ -24,7 +24,7 @@ from invglare.config.paths import config_key_to_path, get_key, path_to_config_ke
 from invglare.config.section import Section
 from invglare.errors import ConfigError
 
-FREE_KEYS = ("path", "lower", "upper", "init", "prior", "transform", "nuisance")
+FREE_KEYS = ("path", "lower", "upper", "init", "prior", "transform", "nuisance", "indices")
 DISCRETE_KEYS = ("path", "values", "key")
 STAGE_KEYS = ("views", "max_steps", "fixed")
 
@@ -75,7 +75,7 @@ def read_free(
     (:func:`invglare.fit.starts.default_init`).
     """
     from invglare.fit.params import Parameter
-    from invglare.fit.paths import spelling
+    from invglare.fit.paths import spelling, vector_length
     from invglare.fit.starts import default_init
 
     if not isinstance(tables, list) or not tables:
@@ -96,14 +96,33 @@ def read_free(
         sec = Section(table, where)
         path = sec.get("path", str, required=True)
         where = f"free[{i}] ({path})"
-        # Check the path first: its error lists the valid paths.
-        path = spelling(forward, path)
+        indices = sec.get("indices", list, None)
+        # A whole vector leaf (a lash layout's angle_deg) frees its elements, each with the
+        # table's bounds; `indices` picks some. Check the path first: its error lists the
+        # valid paths.
+        length = vector_length(forward, path)
+        if length is None and indices is not None:
+            raise ConfigError(f"{where}: indices are for a vector leaf; {path!r} is a scalar")
+        if length is not None:
+            indices = list(range(length)) if indices is None else indices
+            if not indices or any(
+                isinstance(j, bool) or not isinstance(j, int) or not 0 <= j < length
+                for j in indices
+            ):
+                raise ConfigError(
+                    f"{where}.indices must be a non-empty list of integers in [0, {length}), "
+                    f"got {indices!r}"
+                )
+            paths = [spelling(forward, f"{path}[{j}]") for j in indices]
+        else:
+            paths = [spelling(forward, path)]
         lower = number(sec.get("lower", (int, float), required=True), f"{where}.lower", True)
         upper = number(sec.get("upper", (int, float), required=True), f"{where}.upper", True)
         init_raw = sec.get("init", (int, float, list), None)
         prior = sec.get("prior", (str, list, dict), None)
         transform = sec.get("transform", str, "auto")
-        is_nuisance = sec.get("nuisance", bool, path.startswith("obs."))
+        is_nuisance = sec.get("nuisance", bool, paths[0].startswith("obs."))
+        init_range = None
         if isinstance(init_raw, list):
             if len(init_raw) != 2:
                 raise ConfigError(
@@ -115,20 +134,25 @@ def read_free(
                     f"{where}: the init range [{lo:g}, {hi:g}] must be increasing and lie "
                     f"inside the bounds [{lower:g}, {upper:g}]"
                 )
-            init = 0.5 * (lo + hi)
-            ranges[len(entries)] = (lo, hi)
-        elif init_raw is not None:
-            init = number(init_raw, f"{where}.init")
-        else:
-            init = default_init(forward, path, lower, upper, guesses)
-        try:
-            param = Parameter(path, lower, upper, init=init, prior=prior, transform=transform)
-        except TypeError as err:  # a prior table with unknown keys
-            raise ConfigError(
-                f"{where}.prior must be 'uniform', [kind, mean, std] or a table with kind, mean, "
-                f"std; got {prior!r} ({err})"
-            ) from None
-        entries.append((param, is_nuisance))
+            init_range = (lo, hi)
+        for element in paths:
+            if init_range is not None:
+                init = 0.5 * (init_range[0] + init_range[1])
+                ranges[len(entries)] = init_range
+            elif init_raw is not None:
+                init = number(init_raw, f"{where}.init")
+            else:
+                init = default_init(forward, element, lower, upper, guesses)
+            try:
+                param = Parameter(
+                    element, lower, upper, init=init, prior=prior, transform=transform
+                )
+            except TypeError as err:  # a prior table with unknown keys
+                raise ConfigError(
+                    f"{where}.prior must be 'uniform', [kind, mean, std] or a table with kind, "
+                    f"mean, std; got {prior!r} ({err})"
+                ) from None
+            entries.append((param, is_nuisance))
     # Parameters of interest first (their starts are spread), nuisances after; the init
     # ranges follow their parameter to its new index.
     order = [k for k, (_, n) in enumerate(entries) if not n] + [

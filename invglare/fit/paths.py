@@ -288,6 +288,20 @@ def spelling(model: Any, path: str) -> str:
     return _walk(model, path, parse_path(path))[3]
 
 
+def vector_length(model: Any, path: str) -> int | None:
+    """The length of the 1-D float array leaf `path` names as a whole, else None.
+
+    A fit config frees such a leaf element by element (``layout.angle_deg`` of a lash
+    row is ``layout.angle_deg[0]``, ``[1]``, ...). Raises
+    :class:`~invglare.errors.ConfigError` (listing the valid paths) when `path` does not
+    exist.
+    """
+    node, _, index, _ = _walk(model, path, parse_path(path))
+    if not index and _is_float_array(node) and node.ndim == 1:
+        return int(node.shape[0])
+    return None
+
+
 def read_path(model: Any, path: str) -> float:
     """The value `model` holds at the scalar `path`, as a Python float.
 

@@ -32,6 +32,7 @@ print(result.summary())
 from __future__ import annotations
 
 import dataclasses
+import math
 import re
 from collections.abc import Callable, Mapping, Sequence
 from typing import Any, NamedTuple
@@ -43,6 +44,7 @@ import numpy as np
 from jaxtyping import ArrayLike, Float
 
 from invglare.errors import ConfigError
+from invglare.fit.draw_scatter import scatter_covariance, scatter_options
 from invglare.fit.observation import Forward
 from invglare.fit.params import ParameterSpace
 from invglare.fit.result import FitResult
@@ -175,6 +177,7 @@ def fit_staged(
     interest = {q.path for q in space.parameters}
     for k, (stage_views, overrides, fixed) in enumerate(plan):
         sub, template, free_starts, held = hold(space, forward, starts, fixed)
+        stage_options = _with_scatter(sub, template, target, stage_views, view_options, free_starts)
         result = fit(
             sub,
             template,
@@ -187,7 +190,7 @@ def fit_staged(
                 **solver,
                 **overrides,
                 "truth": _subset(truth, sub.paths),
-                "view_options": _subset(view_options, stage_views),
+                "view_options": stage_options,
             },
         )
         result.values.update(held)
@@ -213,6 +216,8 @@ def fit_staged(
             )
         if k + 1 < len(plan):
             starts = np.asarray([[result.values[p] for p in paths]])
+    if plan[-1][1] == {} and _draws(stage_options):
+        _scatter_errors(result, sub, template, target, stage_views, stage_options)
     result.stages = records
     if resume is None:
         result.starts = [dict(zip(paths, map(float, row), strict=True)) for row in first]
@@ -230,6 +235,43 @@ def fit_staged(
     result.n_steps = n_steps
     result.timing_s = timing
     return result
+
+
+def _draws(options) -> int:
+    """The most draws any view of `options` asks for (0: none)."""
+    return max((int(o.get("draws", 0)) for o in (options or {}).values()), default=0)
+
+
+def _with_scatter(space, template, target, views, view_options, starts):
+    """A stage's view options, with the scatter between eyes measured at its first start for
+    every statistics view that asks for `draws` (see :mod:`invglare.fit.draw_scatter`)."""
+    options = _subset(view_options, views)
+    if not _draws(options):
+        return options
+    fn = make_residual_fn(space, template, target, views, view_options=options)
+    return scatter_options(fn, space.to_latent(jnp.asarray(starts[0])), options)
+
+
+def _scatter_errors(result: FitResult, space, template, target, views, options) -> None:
+    """Replace `result`'s covariance by the scatter between eyes with its parameters (and the
+    noise), by :func:`~invglare.fit.draw_scatter.scatter_covariance`, and say so."""
+    fn = make_residual_fn(space, template, target, views, view_options=options)
+    values = jnp.asarray([result.values[p] for p in space.paths])
+    latent = space.to_latent(values)
+    cov_z = scatter_covariance(fn, latent, _draws(options))
+    d = np.asarray(space.jacobian_diag(latent), dtype=np.float64)
+    cov = d[:, None] * cov_z * d[None, :]
+    cols = [result.paths.index(p) for p in space.paths]
+    full = np.full_like(np.asarray(result.covariance, dtype=np.float64), np.nan)
+    full[np.ix_(cols, cols)] = cov
+    result.covariance = full
+    for p, var in zip(space.paths, np.diag(cov), strict=True):
+        result.stderr[p] = float(np.sqrt(var)) if var >= 0 else math.nan
+    result.covariance_scale = 1.0
+    result.message += (
+        f"; standard errors from {_draws(options)} simulated eyes with these parameters "
+        "(the scatter between draws and the noise)"
+    )
 
 
 def _numbered(progress, k: int, n_plan: int):

@@ -41,7 +41,9 @@ from invglare.errors import ConfigError
 from invglare.fit.lash_prior import layout_priors, prior_residuals
 from invglare.fit.observation import Forward, Observation, check_target
 from invglare.fit.params import ParameterSpace
+from invglare.fit.redraw import mean_prediction
 from invglare.fit.specialise import specialise_forward
+from invglare.fit.trend_jacobian import TREND_STEP, trend_residuals
 
 PIXEL_DOMAINS = ("anscombe", "pearson", "log")
 
@@ -389,18 +391,53 @@ class PixelView(AbstractView):
         return (shape[0] // self.factor) * (shape[1] // self.factor)
 
 
+#: Options of the statistics views (radial, angular, halo) for the scatter between eyes
+#: with the same parameters (:mod:`invglare.fit.draw_scatter`): `draws`, how many other
+#: eyes to simulate (0: none); `offset` and `whiten`, what the simulation measured
+#: (set by :func:`invglare.fit.draw_scatter.scatter_options`, not by hand); `model_draws`,
+#: over how many eyes the model's prediction is averaged (1: its own draw only), which
+#: smooths the statistic's dependence on the parameters.
+SCATTER_FIELDS = ("draws", "model_draws", "offset", "whiten")
+
+
+def _optional_array(x):
+    return None if x is None else jnp.asarray(x)
+
+
+def whitened(
+    r: Float[Array, " n"], offset: Float[Array, " n"] | None, whiten: Float[Array, "n n"] | None
+) -> Float[Array, " n"]:
+    """``whiten @ (r - offset)``: a statistic's residual in units of the scatter between eyes
+    (`r` itself where nothing was measured)."""
+    if offset is not None:
+        r = r - offset.astype(r.dtype)
+    if whiten is not None:
+        r = whiten.astype(r.dtype) @ r
+    return r
+
+
 class RadialView(AbstractView):
     """Log ratio of the target's and the model's radial profiles (clipped prediction).
 
     ``log(P_t + floor) - log(P_m + floor)`` per ring, `floor` in counts per pixel
     (below it the profile is noise). Rings of ``max_radius_px / n_bins`` px.
+    With the scatter between eyes measured (see :data:`SCATTER_FIELDS`), the residual is
+    whitened by it.
     """
 
     n_bins: int = eqx.field(static=True)
     max_radius_px: float = eqx.field(static=True)
     floor: float = eqx.field(static=True)
+    draws: int = eqx.field(static=True, default=0)
+    model_draws: int = eqx.field(static=True, default=1)
+    offset: Float[Array, " n"] | None = eqx.field(converter=_optional_array, default=None)
+    whiten: Float[Array, "n n"] | None = eqx.field(converter=_optional_array, default=None)
 
     def __call__(self, ctx):
+        return whitened(self.raw(ctx), self.offset, self.whiten)
+
+    def raw(self, ctx):
+        """The residual before the scatter's whitening."""
         pt = radial_profile(ctx.target, ctx.centre, self.n_bins, self.max_radius_px)
         pm = radial_profile(ctx.predicted, ctx.centre, self.n_bins, self.max_radius_px)
         return jnp.log(jnp.maximum(pt, 0.0) + self.floor) - jnp.log(
@@ -416,14 +453,23 @@ class AngularView(AbstractView):
 
     Both images have the model's current background removed first; the
     fractions make the view independent of the flux, so it constrains
-    directions (blade rotation, lash angles, streaks) only.
+    directions (blade rotation, lash angles, streaks) only. Whitened by the scatter
+    between eyes where it is measured (:data:`SCATTER_FIELDS`).
     """
 
     n_bins: int = eqx.field(static=True)
     r_min: float = eqx.field(static=True)
     r_max: float = eqx.field(static=True)
+    draws: int = eqx.field(static=True, default=0)
+    model_draws: int = eqx.field(static=True, default=1)
+    offset: Float[Array, " n"] | None = eqx.field(converter=_optional_array, default=None)
+    whiten: Float[Array, "n n"] | None = eqx.field(converter=_optional_array, default=None)
 
     def __call__(self, ctx):
+        return whitened(self.raw(ctx), self.offset, self.whiten)
+
+    def raw(self, ctx):
+        """The residual before the scatter's whitening."""
         bg = ctx.obs.response * ctx.obs.background
         et = angular_energy(ctx.target - bg, ctx.centre, self.n_bins, self.r_min, self.r_max)
         em = angular_energy(ctx.predicted - bg, ctx.centre, self.n_bins, self.r_min, self.r_max)
@@ -436,13 +482,22 @@ class AngularView(AbstractView):
 
 
 class HaloView(AbstractView):
-    """Target minus model halo ring radius (px), see :func:`halo_ring_radius`."""
+    """Target minus model halo ring radius (px), see :func:`halo_ring_radius`; whitened
+    by the scatter between eyes where it is measured (:data:`SCATTER_FIELDS`)."""
 
     r_core: float = eqx.field(static=True)
     r_max: float = eqx.field(static=True)
     power: float = eqx.field(static=True, default=2.0)
+    draws: int = eqx.field(static=True, default=0)
+    model_draws: int = eqx.field(static=True, default=1)
+    offset: Float[Array, " n"] | None = eqx.field(converter=_optional_array, default=None)
+    whiten: Float[Array, "n n"] | None = eqx.field(converter=_optional_array, default=None)
 
     def __call__(self, ctx):
+        return whitened(self.raw(ctx), self.offset, self.whiten)
+
+    def raw(self, ctx):
+        """The residual before the scatter's whitening."""
         bg = ctx.obs.response * ctx.obs.background
         kw = dict(background=bg, power=self.power)
         rt = halo_ring_radius(ctx.target, ctx.centre, self.r_core, self.r_max, **kw)
@@ -523,6 +578,12 @@ class ResidualFn(eqx.Module):
     names: tuple[str, ...] = eqx.field(static=True)
     weights: tuple[float, ...] = eqx.field(static=True)
     priors: tuple = ()
+    #: > 0: differentiate by central differences over this many latent units, the trend of
+    #: statistics of unresolved draws (:mod:`invglare.fit.trend_jacobian`); 0: exactly.
+    trend_step: float = eqx.field(static=True, default=0.0)
+    #: > 1: the prediction is averaged over this many eyes (`mean_prediction` of
+    #: :mod:`invglare.fit.redraw`); 1: the model's own draw.
+    model_draws: int = eqx.field(static=True, default=1)
 
     def forward_at(self, latent: Float[Array, " p"] | Sequence[Array]) -> Forward:
         """The forward model with the free parameters set from `latent` (a vector, or a
@@ -535,7 +596,7 @@ class ResidualFn(eqx.Module):
 
     def context(self, latent: Float[Array, " p"] | Sequence[Array]) -> ViewContext:
         fwd = self.forward_at(latent)
-        expected, predicted = fwd.predict()
+        expected, predicted = mean_prediction(fwd, self.model_draws)
         h, w = self.target.shape
         centre = (w // 2 + fwd.obs.dx_px, h // 2 + fwd.obs.dy_px)
         return ViewContext(self.target, self.saturated, expected, predicted, fwd.obs, centre)
@@ -556,6 +617,12 @@ class ResidualFn(eqx.Module):
         model that parameter touches (a flux column is one multiply, not a tangent FFT):
         :func:`invglare.fit.solve.jacobian_columns` builds the Jacobian this way.
         """
+        if self.trend_step:
+            return trend_residuals(self, parts)
+        return self.exact_at_parts(parts)
+
+    def exact_at_parts(self, parts: Sequence[Array]) -> Float[Array, " n"]:
+        """:meth:`at_parts` differentiated exactly, whatever `trend_step` says."""
         ctx = self.context(list(parts))
         weighted = [
             math.sqrt(wt) * v(ctx).astype(self.target.dtype)
@@ -650,4 +717,6 @@ def make_residual_fn(
         names=tuple(names),
         weights=tuple(weights),
         priors=layout_priors(space, forward_template),
+        trend_step=TREND_STEP if any(getattr(v, "draws", 0) for v in built) else 0.0,
+        model_draws=max(getattr(v, "model_draws", 1) for v in built),
     )
