@@ -83,7 +83,6 @@ _EYE_KEYS = {
 }
 
 
-
 @dataclasses.dataclass(frozen=True, eq=False)
 class ReferenceFit:
     """A loaded reference-fit config: what to fit, to what, and where the report goes.

@@ -76,7 +76,10 @@ class CieFitResult:
     `loss`; `converged`; `n_steps`; `starts` (final loss of every start); `seconds`;
     `setup`; `initial_gsf` (the first start's GSF); `blocked_fraction` (of the pupil's
     light, stopped by the fitted particles: ``1 − Σ P² / Σ opening²``); `energy_beyond`
-    (fraction of the CIE's light beyond the fitted range within 100°, or ``None``).
+    (fraction of the CIE's light beyond the fitted range within 100°, or ``None``);
+    `stderr` (``{path: standard error}`` from the scatter between eyes with the fitted
+    parameters, when the setup simulates `draws`; else empty) and `draw_sd_log10` (that
+    scatter per annulus, log10 units).
     """
 
     label: str
@@ -98,6 +101,8 @@ class CieFitResult:
     initial_gsf: np.ndarray
     blocked_fraction: float = math.nan
     energy_beyond: float | None = None
+    stderr: dict[str, float] = dataclasses.field(default_factory=dict)
+    draw_sd_log10: np.ndarray | None = None
 
     def summary(self) -> str:
         lines = [
@@ -107,7 +112,11 @@ class CieFitResult:
             f"{self.n_steps} steps, {self.seconds:.0f} s); the particles block "
             f"{100 * self.blocked_fraction:.0f} % of the pupil's light"
         ]
-        lines += [f"  {path} = {value:.5g}" for path, value in self.values.items()]
+        lines += [
+            f"  {path} = {value:.5g}"
+            + (f" ± {self.stderr[path]:.2g} (between eyes)" if path in self.stderr else "")
+            for path, value in self.values.items()
+        ]
         return "\n".join(lines)
 
     def to_dict(self) -> dict[str, Any]:
@@ -130,6 +139,8 @@ class CieFitResult:
             "blocked_fraction": self.blocked_fraction,
             "energy_beyond_fit_range": self.energy_beyond,
             "setup": dataclasses.asdict(self.setup),
+            "stderr": self.stderr,
+            "draw_sd_log10": None if self.draw_sd_log10 is None else self.draw_sd_log10.tolist(),
         }
 
 
@@ -142,6 +153,8 @@ class _Prepared:
     bins: RadialBins
     solve: Callable
     residuals: Callable
+    draws: Callable  # (latent, model, keys) -> log10 GSF of each redrawn eye
+    jacobian: Callable  # (latent, args) -> the trend Jacobian of the residuals
 
 
 @functools.lru_cache(maxsize=4)
@@ -157,17 +170,19 @@ def _prepare(setup: CieFitSetup) -> _Prepared:
     import jax.numpy as jnp
     import optimistix as optx
 
+    from invglare.fit.redraw import redraw
+
     model, space = build_fit_model(setup)
     bins = RadialBins.build(
         setup.npix, setup.pixel_scale_deg, setup.theta_min_deg, setup.max_angle_deg(),
         setup.n_bins,
     )  # fmt: skip
 
-    def exact(latent, model, log_target):
+    def exact(latent, model, log_target, inv_sd):
         fitted = space.apply(model, space.from_latent(latent))
         gsf = model_gsf(fitted, bins)
         # A floor far below any GSF the model makes keeps log() finite if a bin empties.
-        return jnp.log10(jnp.maximum(gsf, 1e-12)) - log_target
+        return (jnp.log10(jnp.maximum(gsf, 1e-12)) - log_target) * inv_sd
 
     # The exact derivative with respect to a relaxed count is the effect of the one
     # particle fading in, and its interference with all the others (speckle) swamps the
@@ -175,23 +190,23 @@ def _prepare(setup: CieFitSetup) -> _Prepared:
     # difference over +-FD_STEP latent units (about +-5-10 % of a count or a radius),
     # the slope of the profile's trend, which is what a fit of a statistic needs.
     @jax.custom_jvp
-    def smoothed(latent, model, log_target):
-        return exact(latent, model, log_target)
+    def smoothed(latent, model, log_target, inv_sd):
+        return exact(latent, model, log_target, inv_sd)
 
     @smoothed.defjvp
     def _smoothed_jvp(primals, tangents):
-        latent, model, log_target = primals
+        latent, model, log_target, inv_sd = primals
         d_latent = tangents[0]  # the model and the target are data: their tangents are 0
         steps = FD_STEP * jnp.eye(latent.shape[0], dtype=latent.dtype)
         probes = jnp.concatenate([latent + steps, latent - steps])
-        values = jax.vmap(lambda y: exact(y, model, log_target))(probes)
+        values = jax.vmap(lambda y: exact(y, model, log_target, inv_sd))(probes)
         n = latent.shape[0]
         jac = (values[:n] - values[n:]).T / (2.0 * FD_STEP)  # (n_bins, p)
-        return exact(latent, model, log_target), jac @ d_latent
+        return exact(latent, model, log_target, inv_sd), jac @ d_latent
 
     def residuals(latent, args):
-        model, log_target = args
-        return smoothed(latent, model, log_target)
+        model, log_target, inv_sd = args
+        return smoothed(latent, model, log_target, inv_sd)
 
     # Tolerances on the latent step and the loss: 1e-4 is far below what matters in
     # log10 units (0.01 is a 2 % change of the GSF).
@@ -204,7 +219,18 @@ def _prepare(setup: CieFitSetup) -> _Prepared:
         )
         return sol.value, sol.result == optx.RESULTS.successful, sol.stats["num_steps"]
 
-    return _Prepared(model, space, bins, solve, eqx.filter_jit(residuals))
+    def draw_log_gsf(latent, model, key):
+        fitted = space.apply(model, space.from_latent(latent))
+        return jnp.log10(jnp.maximum(model_gsf(redraw(fitted, key), bins), 1e-12))
+
+    def jacobian(latent, args):
+        return jax.jacfwd(residuals)(latent, args)
+
+    return _Prepared(
+        model, space, bins, solve, eqx.filter_jit(residuals),
+        eqx.filter_jit(lambda y, m, keys: jax.lax.map(lambda k: draw_log_gsf(y, m, k), keys)),
+        eqx.filter_jit(jacobian),
+    )  # fmt: skip
 
 
 def fit_radial_gsf(
@@ -254,7 +280,8 @@ def fit_radial_gsf(
                 f"target GSF value {target[bad]!r} at {bins.theta_deg[bad]:.3g} deg; expected "
                 "finite values > 0 (sr^-1)"
             )
-        args = (prep.model, jnp.log10(jnp.asarray(target)))
+        log_target = jnp.log10(jnp.asarray(target))
+        args = (prep.model, log_target, jnp.ones_like(log_target))
         if starts is None:
             latents = [space.initial_latent()]
             if setup.n_starts > 1:
@@ -275,6 +302,11 @@ def fit_radial_gsf(
             if best is None or losses[-1] < best[0]:
                 best = (losses[-1], value, bool(ok), int(steps), r)
         loss, value, ok, steps, r = best
+        stderr, draw_sd = {}, None
+        if setup.draws:
+            value, ok, steps, stderr, draw_sd = _refit_with_draw_scatter(prep, setup, value, args)
+            r = np.asarray(prep.residuals(value, args))
+            loss = float(np.sum(r * r))
         values = space.as_dict(space.from_latent(value))
         fitted = space.apply(prep.model, space.from_latent(value))
         grid = fitted.propagator.grid
@@ -299,7 +331,44 @@ def fit_radial_gsf(
         setup=setup,
         initial_gsf=initial,
         blocked_fraction=blocked,
+        stderr=stderr,
+        draw_sd_log10=draw_sd,
     )
+
+
+def _refit_with_draw_scatter(prep: _Prepared, setup: CieFitSetup, value, args):
+    """Refit weighting each annulus by the scatter between eyes, and the errors it causes.
+
+    `setup.draws` eyes with the fitted parameters (the model with its particles drawn
+    anew, :func:`invglare.fit.redraw.redraw`) give the draw-to-draw standard deviation
+    ``sd`` of the log10 GSF per annulus. The target is one eye and the model another, so
+    their log ratio scatters by ``sqrt(2) sd``: the fit is repeated from `value` with the
+    residuals divided by that, and the covariance of the estimate is that of a linearised
+    bootstrap over the simulated eyes (``pinv(J)`` applied to each eye's standardised
+    deviation, twice: the target's draw and the model's), in the latent space, mapped to
+    the physical values by the transforms' derivatives.
+
+    **Returns:** ``(latent, converged, steps, {path: stderr}, sd per annulus)``.
+    """
+    import jax
+    import jax.numpy as jnp
+
+    model, log_target, _ = args
+    keys = jax.random.split(jax.random.key(setup.seed + 7919), int(setup.draws))
+    sd = np.std(np.asarray(prep.draws(value, model, keys)), axis=0, ddof=1)
+    inv_pair = jnp.asarray(1.0 / (math.sqrt(2.0) * np.maximum(sd, 1e-6)))
+    weighted = (model, log_target, inv_pair)
+    value, ok, steps = prep.solve(value, weighted)
+    eyes = np.asarray(prep.draws(value, model, keys))
+    sd = np.std(eyes, axis=0, ddof=1)
+    jac = np.asarray(prep.jacobian(value, weighted), dtype=np.float64)
+    moves = ((eyes - eyes.mean(axis=0)) * np.asarray(inv_pair)) @ np.linalg.pinv(jac).T
+    cov_z = 2.0 * np.atleast_2d(np.cov(moves, rowvar=False))
+    space = prep.space
+    d = np.asarray(space.jacobian_diag(value), dtype=np.float64)
+    var = d * d * np.diag(cov_z)
+    stderr = {p: float(np.sqrt(v)) for p, v in zip(space.paths, var, strict=True)}
+    return value, bool(ok), int(steps), stderr, sd
 
 
 def _energy_beyond(age: float, pigmentation: float, theta_deg: float) -> float:

@@ -90,6 +90,10 @@ class CieFitSetup:
     - `n_starts`: starts of the fit (the first is the populations' initial values,
       the others spread across the bounds).
     - `max_steps`: Levenberg–Marquardt steps per start.
+    - `draws`: 0, or how many eyes with the fitted parameters (particles drawn anew) are
+      simulated to measure the scatter of the GSF between eyes: the fit is then repeated
+      with each annulus weighted by it, and the result carries standard errors that
+      include it (a target is one eye, the model's draw another).
     """
 
     pupil_diameter_mm: float = 3.0
@@ -104,6 +108,7 @@ class CieFitSetup:
     seed: int = 0
     n_starts: int = 3
     max_steps: int = 60
+    draws: int = 0
 
     def pitch_mm(self) -> float:
         """The pupil raster's pitch (the model's default window: the pupil plus 2 px a side)."""
@@ -142,6 +147,8 @@ class CieFitSetup:
             )
         if self.n_bins < 4:
             raise ConfigError(f"n_bins must be >= 4, got {self.n_bins}")
+        if self.draws and (int(self.draws) != self.draws or self.draws < 8):
+            raise ConfigError(f"draws must be 0 or an integer >= 8, got {self.draws!r}")
 
 
 def eye_config(setup: CieFitSetup) -> dict[str, Any]:
