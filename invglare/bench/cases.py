@@ -246,6 +246,51 @@ def _kakimoto_eye_gradient(n: int):
     return lambda: grad(model.aperture, model)
 
 
+def _kakimoto_layout_gradient(n: int):
+    import equinox as eqx
+    import jax.numpy as jnp
+
+    model = _kakimoto_eye(n)
+    lashes = model.aperture.upper_lashes.with_layout()
+    model = eqx.tree_at(lambda m: m.aperture.upper_lashes, model, lashes)
+    weights = _weights((n, n), 5)
+
+    # With respect to every lash's own root, angle, length, width and curvature (the
+    # leaves of a lash-by-lash fit, 5 x n_max), in reverse mode.
+    @eqx.filter_jit
+    @eqx.filter_grad
+    def grad(layout, m):
+        return jnp.sum(
+            eqx.tree_at(lambda mm: mm.aperture.upper_lashes.layout, m, layout)() * weights
+        )
+
+    return lambda: grad(lashes.layout, model)
+
+
+def _kakimoto_eye_column(n: int):
+    import equinox as eqx
+    import jax
+    import jax.numpy as jnp
+
+    model = _kakimoto_eye(n)
+    lashes = model.aperture.upper_lashes.with_layout()
+    model = eqx.tree_at(lambda m: m.aperture.upper_lashes, model, lashes)
+    middle = lashes.n_max // 2
+
+    # One column of a fit's Jacobian: the PSF's forward-mode derivative in one lash's angle.
+    @eqx.filter_jit
+    def column(m, angle):
+        def psf(a):
+            layout = m.aperture.upper_lashes.layout
+            moved = layout.angle_deg.at[middle].set(a)
+            return eqx.tree_at(lambda mm: mm.aperture.upper_lashes.layout.angle_deg, m, moved)()
+
+        return jax.jvp(psf, (angle,), (jnp.ones_like(angle),))[1]
+
+    angle = lashes.layout.angle_deg[middle]
+    return lambda: column(model, angle)
+
+
 def _kakimoto_camera_rgb(n: int):
     import equinox as eqx
 
@@ -337,6 +382,22 @@ CASES: tuple[Case, ...] = (
         "pipeline",
         "d(sum w * PSF)/d(every float leaf of the daylight eye) of kakimoto_eye_psf",
         _kakimoto_eye_gradient,
+        forward="kakimoto_eye_psf",
+    ),
+    Case(
+        "kakimoto_layout_grad",
+        "pipeline",
+        "d(sum w * PSF)/d(every lash's root, angle, length, width, curvature) of "
+        "kakimoto_eye_psf with its lashes frozen into a layout (5 x n_max leaves, reverse mode)",
+        _kakimoto_layout_gradient,
+        forward="kakimoto_eye_psf",
+    ),
+    Case(
+        "kakimoto_eye_psf_column",
+        "pipeline",
+        "one Jacobian column of a lash-by-lash fit: d PSF / d(one lash's angle) of "
+        "kakimoto_eye_psf, forward mode (jax.jvp)",
+        _kakimoto_eye_column,
         forward="kakimoto_eye_psf",
     ),
     Case(

@@ -37,6 +37,7 @@ from invglare.bench.sample import SAMPLE_CASES
 from invglare.bench.temporal_cases import TEMPORAL_CASES, stage_markdown
 from invglare.bench.timing import load_1m, measure
 from invglare.bench.torch_cases import TORCH_CASES, overhead_markdown
+from invglare.bench.unknown_draw import UNKNOWN_DRAW_CASES
 from invglare.bench.veiling_cases import VEILING_CASES
 from invglare.errors import ConfigError
 
@@ -96,12 +97,16 @@ def select(patterns: list[str], skip: list[str] | None = None) -> tuple[list[Cas
     # The references every ratio is taken against run with any pipeline.
     always = [c for c in CASES if c.kind == "floor" or c.name in REFERENCES]
     cases = [c for c in CASES if c in pipelines or (pipelines and c in always)]
-    fits = [name for name in (*FIT_CASES, *SAMPLE_CASES) if wanted(name)]
+    fits = [name for name in (*FIT_CASES, *SAMPLE_CASES, *UNKNOWN_DRAW_CASES) if wanted(name)]
     # The peers (other packages, installed by the bench extra) run only when named.
     fits += [name for name in PEER_CASES if patterns and wanted(name)]
     if not pipelines and not fits:
         names = ", ".join(
-            [c.name for c in CASES] + list(FIT_CASES) + list(SAMPLE_CASES) + list(PEER_CASES)
+            [c.name for c in CASES]
+            + list(FIT_CASES)
+            + list(SAMPLE_CASES)
+            + list(UNKNOWN_DRAW_CASES)
+            + list(PEER_CASES)
         )
         raise ConfigError(
             f"no benchmark case matches {patterns}"
@@ -234,6 +239,11 @@ def run_bench(
             elif name in SAMPLE_CASES:
                 log.info("running the sampling benchmark %s (a few minutes)", name)
                 record = run_sample_benchmark()
+            elif name in UNKNOWN_DRAW_CASES:
+                from invglare.bench.unknown_draw import run_unknown_draw_benchmark
+
+                log.info("running %s: a fit of an eye the model did not draw (minutes)", name)
+                record = run_unknown_draw_benchmark()
             else:
                 log.info("running the fit benchmark %s at %d px (minutes)", name, fit_npix)
                 record = run_fit_benchmark(FIT_PROBLEMS[name], fit_npix)
@@ -331,6 +341,7 @@ def render_markdown(records: list[dict], meta: dict, fit_records: list[dict] | N
     from invglare.bench.fit import fit_markdown
     from invglare.bench.peer_cases import peers_markdown
     from invglare.bench.sample import sample_markdown
+    from invglare.bench.unknown_draw import unknown_draw_markdown
 
     lines = [
         "# invglare benchmarks",
@@ -402,7 +413,11 @@ def render_markdown(records: list[dict], meta: dict, fit_records: list[dict] | N
         lines += [f"- {failure}" for failure in failures]
     for record in fit_records or []:
         kind = record.get("kind")
-        markdown = {"sample": sample_markdown, "peers": peers_markdown}.get(kind, fit_markdown)
+        markdown = {
+            "sample": sample_markdown,
+            "peers": peers_markdown,
+            "unknown_draw": unknown_draw_markdown,
+        }.get(kind, fit_markdown)
         section = markdown(record)
         lines += ["", *section]
     return "\n".join(lines) + "\n"

@@ -9,22 +9,28 @@ residuals by the noise alone (or by their own sum of squares) mistakes that scat
 information: its errors are too small and its estimates pulled by one draw.
 
 This module measures the scatter at a point of the parameter space, by simulation: the
-model with its random keys redrawn (:func:`redraw`) gives `draws` other eyes, each
-observed with noise. For each statistics view (its residual ``r(t) = S(t) - S(model)``):
+model with its random keys redrawn (:func:`~invglare.fit.redraw.redraw`) gives `draws`
+other eyes, each observed with noise. For each statistics view (its residual
+``r(t) = S(t) - S(model)``), the covariance of its residuals
 
-- ``offset`` = the mean over draws of ``r(noiseless photo of draw k)``: how far the
-  model's own draw sits from the population's mean statistic. Subtracted from the
-  residual (a control variate: the model's statistic, corrected to the draws' mean);
-- ``C`` = ``Cov_k[r(noisy photo of draw k)] + Cov_k[r(noiseless photo of draw k)] / draws``:
-  the covariance of a photo's statistic (draw and noise) plus that of the offset's
-  estimate. Shrunk towards its diagonal (Schäfer & Strimmer 2005, target "D") so that it
-  can be inverted with fewer draws than bins;
-- ``whiten`` = ``L^{-1}`` with ``C = L L^T``.
+``C = Cov_k[r(noisy photo of eye k)] + Cov_k[r(noiseless photo of eye k)] / model_draws``
 
-The view then returns ``whiten @ (r - offset)``: about N(0, I) at the true parameters,
-correlations between bins included, so a fit's covariance holds the scatter between eyes
-with the same parameters. Pixel views are left as they are (a pixel residual of an
-unresolved draw has no such correction: fit those eyes through statistics).
+is the scatter of a photo's statistic (another eye, and the noise) plus that of the
+model's own prediction, the mean of `model_draws` eyes (a view option; with 1, the model
+is one eye and scatters as much as the photo's). It is shrunk towards its diagonal
+(Schäfer & Strimmer 2005, target "D") so that it can be inverted with fewer draws than
+bins, and ``whiten = L^{-1}`` with ``C = L L^T``. The view then returns ``whiten @ r``:
+about N(0, I) at the true parameters, correlations between bins included.
+
+The model's prediction is not corrected towards the draws' mean: a correction measured
+at one point of the parameter space goes stale as the fit moves (the keyed eye's
+deviation from the mean changes from one count to the next), which pulled fits back to
+where it was measured. Averaging the prediction over `model_draws` eyes shrinks that
+deviation instead, at every point. :func:`scatter_covariance` then gives the standard
+errors the scatter causes (a linearised bootstrap), correlations between views
+included, whatever the whitening left out. Pixel views are left as they are (a pixel
+residual of an unresolved draw has no such correction: fit those eyes through
+statistics).
 
 **Example:**
 
@@ -106,8 +112,8 @@ def _draw_batch(fn: ResidualFn, latent: Array, keys: Array) -> tuple[list, list]
 
 def estimate_scatter(
     fn: ResidualFn, latent: Float[Array, " p"], draws: Mapping[str, int], seed: int = 0
-) -> dict[str, tuple[np.ndarray, np.ndarray]]:
-    """``{view: (offset, whiten)}`` of the views named in `draws`, at latent `latent`.
+) -> dict[str, np.ndarray]:
+    """``{view: whiten}`` of the views named in `draws`, at latent `latent`.
 
     **Arguments:**
 
@@ -118,9 +124,9 @@ def estimate_scatter(
     - `seed`: of the draws and their noise (a fixed seed: the same fit twice gives the
       same weights).
 
-    **Returns:** per view the offset to subtract from its residual and the whitening
-    matrix (module docstring). **Raises:** `ConfigError` for a view the fit does not
-    have, fewer than 8 draws, or a model without random draws.
+    **Returns:** per view the whitening matrix (module docstring). **Raises:**
+    `ConfigError` for a view the fit does not have, fewer than 8 draws, or a model
+    without random draws.
     """
     from invglare.errors import ConfigError
 
@@ -151,9 +157,8 @@ def estimate_scatter(
             continue
         rp = np.concatenate(noisy[v])
         rc = np.concatenate(clean[v])
-        cov = _shrunk_covariance(rp) + _shrunk_covariance(rc) / rc.shape[0]
-        whiten = np.linalg.inv(np.linalg.cholesky(cov))
-        out[name] = (rc.mean(axis=0), whiten)
+        cov = _shrunk_covariance(rp) + _shrunk_covariance(rc) / fn.model_draws
+        out[name] = np.linalg.inv(np.linalg.cholesky(cov))
     return out
 
 
@@ -165,15 +170,15 @@ def scatter_options(
 ) -> dict[str, dict[str, Any]]:
     """`view_options` with the measured scatter added to every view that asks for draws.
 
-    A statistics view with the option ``draws = N`` gets ``offset`` and ``whiten``
-    (see :func:`estimate_scatter`, at `latent`); the other options come back unchanged.
+    A statistics view with the option ``draws = N`` gets ``whiten`` (see
+    :func:`estimate_scatter`, at `latent`); the other options come back unchanged.
     """
     options = {k: dict(v) for k, v in (view_options or {}).items()}
     draws = {name: int(o["draws"]) for name, o in options.items() if o.get("draws", 0)}
     if not draws:
         return options
-    for name, (offset, whiten) in estimate_scatter(fn, latent, draws, seed).items():
-        options[name].update(offset=offset, whiten=whiten)
+    for name, whiten in estimate_scatter(fn, latent, draws, seed).items():
+        options[name]["whiten"] = whiten
     return options
 
 
@@ -207,11 +212,11 @@ def scatter_covariance(
     with noise, give residual vectors ``r_k``; a fit of eye ``k`` would move the estimate
     by ``G (r_k - mean)`` to first order, ``G = (J^T J)^-1 J^T`` with `fn`'s Jacobian at
     `latent` (the trend's, :mod:`invglare.fit.trend_jacobian`, where `fn` differentiates
-    so). The covariance of those moves (plus that of the noiseless draws over `n_draws`,
-    the uncertainty of the views' offsets) is what the estimate scatters by between eyes
-    with the same parameters: correlations between bins and between views included,
-    whatever the whitening left. A `seed` other than the scatter's own keeps the two
-    simulations independent.
+    so). The covariance of those moves, plus that of the noiseless eyes' over
+    ``fn.model_draws`` (the model's prediction is the mean of that many eyes, and scatters
+    too), is what the estimate scatters by between eyes with the same parameters:
+    correlations between bins and between views included, whatever the whitening left.
+    A `seed` other than the scatter's own keeps the two simulations independent.
 
     **Returns:** the ``(p, p)`` covariance of the latent values.
     """
@@ -228,6 +233,6 @@ def scatter_covariance(
         clean.append(np.asarray(rc, dtype=np.float64))
     gain = np.linalg.pinv(jac)  # (p, n_residuals)
     moves = np.concatenate(noisy) @ gain.T
-    offset_moves = np.concatenate(clean) @ gain.T
+    model_moves = np.concatenate(clean) @ gain.T
     cov = np.atleast_2d(np.cov(moves, rowvar=False))
-    return cov + np.atleast_2d(np.cov(offset_moves, rowvar=False)) / n
+    return cov + np.atleast_2d(np.cov(model_moves, rowvar=False)) / fn.model_draws

@@ -393,24 +393,21 @@ class PixelView(AbstractView):
 
 #: Options of the statistics views (radial, angular, halo) for the scatter between eyes
 #: with the same parameters (:mod:`invglare.fit.draw_scatter`): `draws`, how many other
-#: eyes to simulate (0: none); `offset` and `whiten`, what the simulation measured
-#: (set by :func:`invglare.fit.draw_scatter.scatter_options`, not by hand); `model_draws`,
-#: over how many eyes the model's prediction is averaged (1: its own draw only), which
-#: smooths the statistic's dependence on the parameters.
-SCATTER_FIELDS = ("draws", "model_draws", "offset", "whiten")
+#: eyes to simulate (0: none); `whiten`, what the simulation measured (set by
+#: :func:`invglare.fit.draw_scatter.scatter_options`, not by hand); `model_draws`, over
+#: how many eyes the model's prediction is averaged (1: its own draw only), which shrinks
+#: one draw's deviation from the mean and smooths the statistic's dependence on the
+#: parameters.
+SCATTER_FIELDS = ("draws", "model_draws", "whiten")
 
 
 def _optional_array(x):
     return None if x is None else jnp.asarray(x)
 
 
-def whitened(
-    r: Float[Array, " n"], offset: Float[Array, " n"] | None, whiten: Float[Array, "n n"] | None
-) -> Float[Array, " n"]:
-    """``whiten @ (r - offset)``: a statistic's residual in units of the scatter between eyes
-    (`r` itself where nothing was measured)."""
-    if offset is not None:
-        r = r - offset.astype(r.dtype)
+def whitened(r: Float[Array, " n"], whiten: Float[Array, "n n"] | None) -> Float[Array, " n"]:
+    """``whiten @ r``: a statistic's residual in units of the scatter between eyes (`r`
+    itself where nothing was measured)."""
     if whiten is not None:
         r = whiten.astype(r.dtype) @ r
     return r
@@ -430,11 +427,10 @@ class RadialView(AbstractView):
     floor: float = eqx.field(static=True)
     draws: int = eqx.field(static=True, default=0)
     model_draws: int = eqx.field(static=True, default=1)
-    offset: Float[Array, " n"] | None = eqx.field(converter=_optional_array, default=None)
     whiten: Float[Array, "n n"] | None = eqx.field(converter=_optional_array, default=None)
 
     def __call__(self, ctx):
-        return whitened(self.raw(ctx), self.offset, self.whiten)
+        return whitened(self.raw(ctx), self.whiten)
 
     def raw(self, ctx):
         """The residual before the scatter's whitening."""
@@ -462,11 +458,10 @@ class AngularView(AbstractView):
     r_max: float = eqx.field(static=True)
     draws: int = eqx.field(static=True, default=0)
     model_draws: int = eqx.field(static=True, default=1)
-    offset: Float[Array, " n"] | None = eqx.field(converter=_optional_array, default=None)
     whiten: Float[Array, "n n"] | None = eqx.field(converter=_optional_array, default=None)
 
     def __call__(self, ctx):
-        return whitened(self.raw(ctx), self.offset, self.whiten)
+        return whitened(self.raw(ctx), self.whiten)
 
     def raw(self, ctx):
         """The residual before the scatter's whitening."""
@@ -490,11 +485,10 @@ class HaloView(AbstractView):
     power: float = eqx.field(static=True, default=2.0)
     draws: int = eqx.field(static=True, default=0)
     model_draws: int = eqx.field(static=True, default=1)
-    offset: Float[Array, " n"] | None = eqx.field(converter=_optional_array, default=None)
     whiten: Float[Array, "n n"] | None = eqx.field(converter=_optional_array, default=None)
 
     def __call__(self, ctx):
-        return whitened(self.raw(ctx), self.offset, self.whiten)
+        return whitened(self.raw(ctx), self.whiten)
 
     def raw(self, ctx):
         """The residual before the scatter's whitening."""

@@ -21,6 +21,7 @@ from jaxtyping import Array, ArrayLike, Bool, Float, Int
 from scipy.special import ndtr
 
 from invglare.errors import ConfigError
+from invglare.fit.draw_scatter import scatter_options
 from invglare.fit.lash_prior import joint_log_prior, layout_priors
 from invglare.fit.observation import CENSORING, Forward, check_target
 from invglare.fit.params import ParameterSpace
@@ -144,6 +145,7 @@ def make_log_posterior(
     views: Mapping[str, float] | None = None,
     view_options: Mapping[str, Mapping[str, Any]] | None = None,
     residual_scale: float = 1.0,
+    scatter_at: Mapping[str, float] | None = None,
 ) -> LogPosterior:
     """Build the log posterior of a fit, validating the space, priors, target and options.
 
@@ -152,7 +154,9 @@ def make_log_posterior(
     - `space`, `forward_template`, `target`: as for :func:`invglare.fit.fit`.
     - `likelihood`: ``"pixels"`` (Poisson–Gaussian, the default) or ``"views"``
       (Gaussian on the fit's residuals; needs `views`, optionally `view_options`,
-      and `residual_scale`, the fit's `covariance_scale`).
+      and `residual_scale`, the fit's `covariance_scale`). Statistics views that ask for
+      ``draws`` are whitened by the scatter between eyes measured at `scatter_at` (the
+      fit's values, ``{path: value}``; see :mod:`invglare.fit.draw_scatter`).
     - `censoring`: how saturated pixels enter the pixel likelihood (``"survival"``
       or ``"exclude"``, see :meth:`~invglare.fit.Observation.log_likelihood`).
     - `mask`: pixels to use (True), e.g. to drop hot pixels.
@@ -189,6 +193,12 @@ def make_log_posterior(
         residual_fn = make_residual_fn(
             space, forward_template, tgt, views, view_options=view_options
         )
+        if scatter_at is not None and any(o.get("draws", 0) for o in (view_options or {}).values()):
+            latent = space.to_latent(scatter_at)
+            options = scatter_options(residual_fn, latent, view_options)
+            residual_fn = make_residual_fn(
+                space, forward_template, tgt, views, view_options=options
+            )
     m = None
     if mask is not None:
         m = jnp.asarray(mask, bool)

@@ -179,6 +179,7 @@ def sample(
         space, forward_template, target, likelihood=likelihood, censoring=censoring,
         mask=mask, views=views, view_options=view_options,
         residual_scale=fit_result.covariance_scale if likelihood == "views" else 1.0,
+        scatter_at=fit_result.values if likelihood == "views" else None,
     )  # fmt: skip
 
     stored = stored_iteration(path) if path.is_file() else 0
