@@ -11,22 +11,24 @@ information: its errors are too small and its estimates pulled by one draw.
 This module measures the scatter at a point of the parameter space, by simulation: the
 model with its random keys redrawn (:func:`~invglare.fit.redraw.redraw`) gives `draws`
 other eyes, each observed with noise. For each statistics view (its residual
-``r(t) = S(t) - S(model)``), the covariance of its residuals
+``r(t) = S(t) - S(model)``):
 
-``C = Cov_k[r(noisy photo of eye k)] + Cov_k[r(noiseless photo of eye k)] / model_draws``
+- ``offset`` = the mean over draws of ``r(noiseless photo of eye k)``: how far the
+  model's prediction (its own draw, or the mean of `model_draws` eyes) sits from the
+  population's mean statistic. Subtracted from the residual (a control variate): the
+  level of the statistic then comes from many eyes, its change with the parameters from
+  the model's own; measured at one point, it is right there and drifts away from it, so
+  a stage with draws is repeated from its result with the scatter measured anew
+  (:data:`invglare.fit.stages.DRAW_ROUNDS` rounds: a Gauss-Newton iteration on the
+  population's mean statistic);
+- ``C`` = ``Cov_k[r(noisy photo of eye k)] + Cov_k[r(noiseless photo of eye k)] / draws``:
+  the scatter of a photo's statistic (another eye, and the noise) plus that of the
+  offset's estimate, shrunk towards its diagonal (Schäfer & Strimmer 2005, target "D")
+  so that it can be inverted with fewer draws than bins; ``whiten = L^{-1}`` with
+  ``C = L L^T``.
 
-is the scatter of a photo's statistic (another eye, and the noise) plus that of the
-model's own prediction, the mean of `model_draws` eyes (a view option; with 1, the model
-is one eye and scatters as much as the photo's). It is shrunk towards its diagonal
-(Schäfer & Strimmer 2005, target "D") so that it can be inverted with fewer draws than
-bins, and ``whiten = L^{-1}`` with ``C = L L^T``. The view then returns ``whiten @ r``:
-about N(0, I) at the true parameters, correlations between bins included.
-
-The model's prediction is not corrected towards the draws' mean: a correction measured
-at one point of the parameter space goes stale as the fit moves (the keyed eye's
-deviation from the mean changes from one count to the next), which pulled fits back to
-where it was measured. Averaging the prediction over `model_draws` eyes shrinks that
-deviation instead, at every point. :func:`scatter_covariance` then gives the standard
+The view returns ``whiten @ (r - offset)``: about N(0, I) at the true parameters,
+correlations between bins included. :func:`scatter_covariance` then gives the standard
 errors the scatter causes (a linearised bootstrap), correlations between views
 included, whatever the whitening left out. Pixel views are left as they are (a pixel
 residual of an unresolved draw has no such correction: fit those eyes through
@@ -112,8 +114,8 @@ def _draw_batch(fn: ResidualFn, latent: Array, keys: Array) -> tuple[list, list]
 
 def estimate_scatter(
     fn: ResidualFn, latent: Float[Array, " p"], draws: Mapping[str, int], seed: int = 0
-) -> dict[str, np.ndarray]:
-    """``{view: whiten}`` of the views named in `draws`, at latent `latent`.
+) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """``{view: (offset, whiten)}`` of the views named in `draws`, at latent `latent`.
 
     **Arguments:**
 
@@ -124,7 +126,8 @@ def estimate_scatter(
     - `seed`: of the draws and their noise (a fixed seed: the same fit twice gives the
       same weights).
 
-    **Returns:** per view the whitening matrix (module docstring). **Raises:**
+    **Returns:** per view the offset to subtract from its residual and the whitening
+    matrix (module docstring). **Raises:**
     `ConfigError` for a view the fit does not have, fewer than 8 draws, or a model
     without random draws.
     """
@@ -157,8 +160,8 @@ def estimate_scatter(
             continue
         rp = np.concatenate(noisy[v])
         rc = np.concatenate(clean[v])
-        cov = _shrunk_covariance(rp) + _shrunk_covariance(rc) / fn.model_draws
-        out[name] = np.linalg.inv(np.linalg.cholesky(cov))
+        cov = _shrunk_covariance(rp) + _shrunk_covariance(rc) / rc.shape[0]
+        out[name] = (rc.mean(axis=0), np.linalg.inv(np.linalg.cholesky(cov)))
     return out
 
 
@@ -170,15 +173,15 @@ def scatter_options(
 ) -> dict[str, dict[str, Any]]:
     """`view_options` with the measured scatter added to every view that asks for draws.
 
-    A statistics view with the option ``draws = N`` gets ``whiten`` (see
+    A statistics view with the option ``draws = N`` gets ``offset`` and ``whiten`` (see
     :func:`estimate_scatter`, at `latent`); the other options come back unchanged.
     """
     options = {k: dict(v) for k, v in (view_options or {}).items()}
     draws = {name: int(o["draws"]) for name, o in options.items() if o.get("draws", 0)}
     if not draws:
         return options
-    for name, whiten in estimate_scatter(fn, latent, draws, seed).items():
-        options[name]["whiten"] = whiten
+    for name, (offset, whiten) in estimate_scatter(fn, latent, draws, seed).items():
+        options[name].update(offset=offset, whiten=whiten)
     return options
 
 
@@ -212,9 +215,9 @@ def scatter_covariance(
     with noise, give residual vectors ``r_k``; a fit of eye ``k`` would move the estimate
     by ``G (r_k - mean)`` to first order, ``G = (J^T J)^-1 J^T`` with `fn`'s Jacobian at
     `latent` (the trend's, :mod:`invglare.fit.trend_jacobian`, where `fn` differentiates
-    so). The covariance of those moves, plus that of the noiseless eyes' over
-    ``fn.model_draws`` (the model's prediction is the mean of that many eyes, and scatters
-    too), is what the estimate scatters by between eyes with the same parameters:
+    so). The covariance of those moves, plus that of the noiseless eyes' over `n_draws`
+    (the offsets' uncertainty), is what the estimate scatters by between eyes with the
+    same parameters:
     correlations between bins and between views included, whatever the whitening left.
     A `seed` other than the scatter's own keeps the two simulations independent.
 
@@ -235,4 +238,4 @@ def scatter_covariance(
     moves = np.concatenate(noisy) @ gain.T
     model_moves = np.concatenate(clean) @ gain.T
     cov = np.atleast_2d(np.cov(moves, rowvar=False))
-    return cov + np.atleast_2d(np.cov(model_moves, rowvar=False)) / fn.model_draws
+    return cov + np.atleast_2d(np.cov(model_moves, rowvar=False)) / n

@@ -178,6 +178,22 @@ def fit_staged(
     for k, (stage_views, overrides, fixed) in enumerate(plan):
         sub, template, free_starts, held = hold(space, forward, starts, fixed)
         stage_options = _with_scatter(sub, template, target, stage_views, view_options, free_starts)
+        # With draws, the offsets are right where they were measured: rounds from the result.
+        for _ in range(DRAW_ROUNDS - 1 if _draws(stage_options) else 0):
+            round_result = fit(
+                sub, template, target, stage_views, starts=free_starts,
+                n_starts=free_starts.shape[0], progress=_numbered(progress, k, len(plan)),
+                **{**solver, **overrides, "coarse_to_fine": (1,), "diagnostics": False,
+                   "view_options": stage_options},
+            )  # fmt: skip
+            timing["compile"] += float(round_result.timing_s.get("compile", 0.0))
+            timing["solve"] += float(round_result.timing_s.get("solve", 0.0))
+            n_steps += round_result.n_steps
+            free_starts = np.asarray([[round_result.values[p] for p in sub.paths]])
+            origin = origin[[round_result.best_start]]
+            stage_options = _with_scatter(
+                sub, template, target, stage_views, view_options, free_starts
+            )
         result = fit(
             sub,
             template,
@@ -235,6 +251,11 @@ def fit_staged(
     result.n_steps = n_steps
     result.timing_s = timing
     return result
+
+
+#: Rounds of a stage with draws: each measures the scatter between eyes at its start (the
+#: previous round's result) and fits (see :mod:`invglare.fit.draw_scatter`).
+DRAW_ROUNDS = 3
 
 
 def _draws(options) -> int:

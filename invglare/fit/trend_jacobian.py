@@ -10,14 +10,15 @@ measures the jaggedness, not how the statistic follows the parameter.
 
 So a fit of statistics of unresolved draws (views with ``draws``, see
 :mod:`invglare.fit.draw_scatter`) differentiates its residuals by central differences
-over :data:`TREND_STEP` latent units (a few per cent of a bounded parameter's range):
-the slope of the trend. :func:`trend_residuals` does that through a `jax.custom_jvp`
-whose rule evaluates only the columns asked for (a solver's Jacobian, column by column,
-costs two evaluations per parameter, as a JVP does). The invglare CIE study found the
-same (its ``FD_STEP``).
+over :data:`TREND_STEP` latent units (a few per cent of a bounded parameter's range;
+:data:`COUNT_STEP` elements of a relaxed count): the slope of the trend.
+:func:`trend_residuals` does that through a `jax.custom_jvp` whose rule evaluates only
+the columns asked for (a solver's Jacobian, column by column, costs two evaluations per
+parameter, as a JVP does). The invglare CIE study found the same (its ``FD_STEP``).
 
-**Example:** ``dataclasses.replace(fn, trend_step=TREND_STEP)`` makes a residual function
-differentiate this way (``make_residual_fn`` does it for views with draws).
+**Example:** ``dataclasses.replace(fn, trend_step=trend_steps(fn.space))`` makes a
+residual function differentiate this way (``make_residual_fn`` does it for views with
+draws).
 """
 
 from __future__ import annotations
@@ -33,6 +34,23 @@ from jaxtyping import Array, Float
 #: Step (latent units) of the central differences: +-0.1 is about +-2.5 % of a logit
 #: parameter's range at its middle, +-10 % of a log parameter.
 TREND_STEP = 0.1
+#: A relaxed count (a path ending in ``.count``) steps by this many elements either side
+#: (at its initial value; the latent step is capped at 1): one element fading in is the
+#: jaggedness itself, a trend needs a few.
+COUNT_STEP = 2.0
+
+
+def trend_steps(space: Any) -> tuple[float, ...]:
+    """The latent step of each parameter of `space` (:data:`TREND_STEP`, or for a relaxed
+    count the step of :data:`COUNT_STEP` elements at its initial value)."""
+    steps = []
+    for p in space.all:
+        h = TREND_STEP
+        if p.path.endswith(".count"):
+            slope = float(p.dx_dz(p.to_latent(jnp.asarray(p.init))))
+            h = min(max(COUNT_STEP / slope, TREND_STEP), 1.0) if slope > 0 else TREND_STEP
+        steps.append(h)
+    return tuple(steps)
 
 
 @jax.custom_jvp
@@ -45,10 +63,10 @@ def _trend_jvp(primals, tangents):
     _, *t_parts = tangents
     value = fn.exact_at_parts(list(parts))
     out = jnp.zeros_like(value)
-    h = fn.trend_step
     for i, t in enumerate(t_parts):
         if isinstance(t, SymbolicZero):
             continue
+        h = fn.trend_step[i]
         up = fn.exact_at_parts([*parts[:i], parts[i] + h, *parts[i + 1 :]])
         down = fn.exact_at_parts([*parts[:i], parts[i] - h, *parts[i + 1 :]])
         out = out + (up - down) / (2.0 * h) * t
@@ -60,5 +78,6 @@ _trend.defjvp(_trend_jvp, symbolic_zeros=True)
 
 def trend_residuals(fn: Any, parts: Sequence[Array]) -> Float[Array, " n"]:
     """`fn`'s residuals at the latent values `parts`, differentiated by central differences
-    over ``fn.trend_step`` latent units (module docstring); the values are exact."""
+    over ``fn.trend_step[i]`` latent units in part `i` (module docstring); the values are
+    exact."""
     return _trend(fn, *parts)

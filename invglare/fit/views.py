@@ -15,6 +15,7 @@ centre.
 | `radial`  | ``log(P_target + c) - log(P_model + c)`` of the radial profiles     |
 | `angular` | ``n_bins * (F_target - F_model)``, F the energy fraction per sector |
 | `halo`    | ring radius of the target minus that of the model, px               |
+| `symmetry`| per pixel, the residual's point asymmetry about the source (centre) |
 
 :func:`make_residual_fn` concatenates the chosen views, each multiplied by
 ``sqrt(weight)``, so the loss is ``sum_v weight_v * ||r_v||**2``.
@@ -39,11 +40,11 @@ from jaxtyping import Array, ArrayLike, Bool, Float
 
 from invglare.errors import ConfigError
 from invglare.fit.lash_prior import layout_priors, prior_residuals
-from invglare.fit.observation import Forward, Observation, check_target
+from invglare.fit.observation import Forward, Observation, check_target, fourier_shift
 from invglare.fit.params import ParameterSpace
 from invglare.fit.redraw import mean_prediction
 from invglare.fit.specialise import specialise_forward
-from invglare.fit.trend_jacobian import TREND_STEP, trend_residuals
+from invglare.fit.trend_jacobian import trend_residuals, trend_steps
 
 PIXEL_DOMAINS = ("anscombe", "pearson", "log")
 
@@ -393,21 +394,24 @@ class PixelView(AbstractView):
 
 #: Options of the statistics views (radial, angular, halo) for the scatter between eyes
 #: with the same parameters (:mod:`invglare.fit.draw_scatter`): `draws`, how many other
-#: eyes to simulate (0: none); `whiten`, what the simulation measured (set by
+#: eyes to simulate (0: none); `offset` and `whiten`, what the simulation measured (set by
 #: :func:`invglare.fit.draw_scatter.scatter_options`, not by hand); `model_draws`, over
-#: how many eyes the model's prediction is averaged (1: its own draw only), which shrinks
-#: one draw's deviation from the mean and smooths the statistic's dependence on the
-#: parameters.
-SCATTER_FIELDS = ("draws", "model_draws", "whiten")
+#: how many eyes the model's prediction is averaged (1: its own draw only), which smooths
+#: the statistic's dependence on the parameters.
+SCATTER_FIELDS = ("draws", "model_draws", "offset", "whiten")
 
 
 def _optional_array(x):
     return None if x is None else jnp.asarray(x)
 
 
-def whitened(r: Float[Array, " n"], whiten: Float[Array, "n n"] | None) -> Float[Array, " n"]:
-    """``whiten @ r``: a statistic's residual in units of the scatter between eyes (`r`
-    itself where nothing was measured)."""
+def whitened(
+    r: Float[Array, " n"], offset: Float[Array, " n"] | None, whiten: Float[Array, "n n"] | None
+) -> Float[Array, " n"]:
+    """``whiten @ (r - offset)``: a statistic's residual, its model side corrected to the mean
+    of many eyes, in units of the scatter between eyes (`r` where nothing was measured)."""
+    if offset is not None:
+        r = r - offset.astype(r.dtype)
     if whiten is not None:
         r = whiten.astype(r.dtype) @ r
     return r
@@ -427,10 +431,11 @@ class RadialView(AbstractView):
     floor: float = eqx.field(static=True)
     draws: int = eqx.field(static=True, default=0)
     model_draws: int = eqx.field(static=True, default=1)
+    offset: Float[Array, " n"] | None = eqx.field(converter=_optional_array, default=None)
     whiten: Float[Array, "n n"] | None = eqx.field(converter=_optional_array, default=None)
 
     def __call__(self, ctx):
-        return whitened(self.raw(ctx), self.whiten)
+        return whitened(self.raw(ctx), self.offset, self.whiten)
 
     def raw(self, ctx):
         """The residual before the scatter's whitening."""
@@ -458,10 +463,11 @@ class AngularView(AbstractView):
     r_max: float = eqx.field(static=True)
     draws: int = eqx.field(static=True, default=0)
     model_draws: int = eqx.field(static=True, default=1)
+    offset: Float[Array, " n"] | None = eqx.field(converter=_optional_array, default=None)
     whiten: Float[Array, "n n"] | None = eqx.field(converter=_optional_array, default=None)
 
     def __call__(self, ctx):
-        return whitened(self.raw(ctx), self.whiten)
+        return whitened(self.raw(ctx), self.offset, self.whiten)
 
     def raw(self, ctx):
         """The residual before the scatter's whitening."""
@@ -485,10 +491,11 @@ class HaloView(AbstractView):
     power: float = eqx.field(static=True, default=2.0)
     draws: int = eqx.field(static=True, default=0)
     model_draws: int = eqx.field(static=True, default=1)
+    offset: Float[Array, " n"] | None = eqx.field(converter=_optional_array, default=None)
     whiten: Float[Array, "n n"] | None = eqx.field(converter=_optional_array, default=None)
 
     def __call__(self, ctx):
-        return whitened(self.raw(ctx), self.whiten)
+        return whitened(self.raw(ctx), self.offset, self.whiten)
 
     def raw(self, ctx):
         """The residual before the scatter's whitening."""
@@ -502,6 +509,60 @@ class HaloView(AbstractView):
         return 1
 
 
+def point_reflection(image: Float[ArrayLike, "h w"], dx_px: ArrayLike, dy_px: ArrayLike) -> Array:
+    """`image` reflected through the point ``(w // 2 + dx, h // 2 + dy)`` (pixel index units).
+
+    The reflection through pixel ``(w // 2, h // 2)`` is an exact index flip (periodic);
+    the sub-pixel rest is a Fourier shift by twice the offset (exact for band-limited
+    images, see :func:`~invglare.fit.observation.fourier_shift`).
+    """
+    image = jnp.asarray(image)
+    h, w = image.shape
+    flipped = jnp.roll(image[::-1, ::-1], (2 * (h // 2) + 1 - h, 2 * (w // 2) + 1 - w), (0, 1))
+    return fourier_shift(flipped, 2.0 * jnp.asarray(dx_px), 2.0 * jnp.asarray(dy_px))
+
+
+class SymmetryView(AbstractView):
+    """The point asymmetry of the pixel residuals about the source, noise-normalised.
+
+    The far field of a real aperture is point-symmetric, ``I(x) = I(-x)`` about the
+    source, whatever its random structure: photo and model are both symmetric about
+    their centres, however their lashes or particles were drawn. The residual image
+    ``d = target - model`` (the clipped prediction), tapered by a window symmetric about
+    the model's centre (1 out to `taper` of the largest radius that fits in the frame,
+    a cosine to 0 at that radius, so that the frame's edge and the reflection's wrap
+    never enter), is reflected through that centre (:func:`point_reflection`), and
+    ``(d - reflected d) / (2 w sqrt(v))`` is returned per pixel (``w`` the window, ``v``
+    the noise variance of the model's expected counts: the pair's standard deviation,
+    each pair counted twice; pixels where it is below 0.05 give 0): noise only at the
+    true centre for any draw (with a little numerical asymmetry from the clip, which the
+    Fourier reflection does not carry exactly). It fixes the source's sub-pixel position
+    where statistics cannot (a radial profile depends on the centre only to second
+    order), and says nothing about anything symmetric.
+    """
+
+    taper: float = eqx.field(static=True, default=0.8)
+
+    def __call__(self, ctx):
+        h, w = ctx.target.shape
+        dx, dy = ctx.obs.dx_px, ctx.obs.dy_px
+        _, _, r, _ = _offsets((h, w), ctx.centre, ctx.target.dtype)
+        r_max = min(h, w) / 2 - 2.0
+        r_in = self.taper * r_max
+        u = jnp.clip((r - r_in) / (r_max - r_in), 0.0, 1.0)
+        window = 0.5 * (1.0 + jnp.cos(math.pi * u))
+        d = window * (ctx.target - ctx.predicted)
+        a = d - point_reflection(d, dx, dy)
+        # Var(a) = 2 w**2 v (the window and, at the true centre, v are symmetric); each pair
+        # of pixels appears twice, hence the further 2.
+        inside = window > 0.05
+        sd = 2.0 * window * jnp.sqrt(jnp.maximum(ctx.obs.variance(ctx.expected), _TINY))
+        return jnp.where(inside, a / jnp.where(inside, sd, 1.0), 0.0).reshape(-1)
+
+    def size(self, shape):
+        return shape[0] * shape[1]
+
+
 #: View names accepted by :func:`make_residual_fn`, with their classes.
 VIEWS: dict[str, type[AbstractView]] = {
     "pixels": PixelView,
@@ -509,6 +570,7 @@ VIEWS: dict[str, type[AbstractView]] = {
     "radial": RadialView,
     "angular": AngularView,
     "halo": HaloView,
+    "symmetry": SymmetryView,
 }
 
 
@@ -522,7 +584,7 @@ def _defaults(name: str, shape, obs: Observation, target: np.ndarray) -> dict:
     """Options of a view that depend on the image: sizes, radii and floors."""
     r_max = float(min(shape) // 2 - 1)
     floor = max(_noise_floor(obs), 1e-6 * float(np.max(np.abs(target))), 1e-30)
-    if name == "pixels":
+    if name in ("pixels", "symmetry"):
         return {}
     if name == "log":
         return {"domain": "log", "floor": 3.0 * floor}
@@ -572,9 +634,9 @@ class ResidualFn(eqx.Module):
     names: tuple[str, ...] = eqx.field(static=True)
     weights: tuple[float, ...] = eqx.field(static=True)
     priors: tuple = ()
-    #: > 0: differentiate by central differences over this many latent units, the trend of
-    #: statistics of unresolved draws (:mod:`invglare.fit.trend_jacobian`); 0: exactly.
-    trend_step: float = eqx.field(static=True, default=0.0)
+    #: Latent steps (one per parameter) of central differences, the trend of statistics of
+    #: unresolved draws (:mod:`invglare.fit.trend_jacobian`); empty: exact derivatives.
+    trend_step: tuple[float, ...] = eqx.field(static=True, default=())
     #: > 1: the prediction is averaged over this many eyes (`mean_prediction` of
     #: :mod:`invglare.fit.redraw`); 1: the model's own draw.
     model_draws: int = eqx.field(static=True, default=1)
@@ -711,6 +773,6 @@ def make_residual_fn(
         names=tuple(names),
         weights=tuple(weights),
         priors=layout_priors(space, forward_template),
-        trend_step=TREND_STEP if any(getattr(v, "draws", 0) for v in built) else 0.0,
+        trend_step=trend_steps(space) if any(getattr(v, "draws", 0) for v in built) else (),
         model_draws=max(getattr(v, "model_draws", 1) for v in built),
     )
