@@ -48,8 +48,10 @@ and the eye aperture:
   calls it so that the model works under `jit`, `vmap` and `grad`.
 
 **Output.** Like :class:`~invglare.models.aperture_psf.AperturePSF`, PSFs are
-energy per output pixel, normalised to unit energy per wavelength (the power that
-passes both obstacle and pupil; with the FFT the sum is 1). With
+energy per output pixel, per unit power through obstacle and pupil (per wavelength): the
+raster's transmission ``sum |t_o P| pitch^2``, as in :mod:`invglare.optics.fraunhofer`
+(with the FFT the sum is just under 1: the light the raster's sharp edges diffract beyond
+its Nyquist angle is not held). With
 ``colour="paper_rgb"`` each of the R, G, B channels is a monochromatic PSF
 (680, 530, 460 nm) of unit energy, as the paper's three "equal-strength, pure
 coherent" lines; with ``colour="spectral"`` the spectrum is integrated through
@@ -421,13 +423,14 @@ class KakimotoGlare(AbstractRasterModel):
     ) -> Float[Array, ""]:
         """Fraction of the power through the pupil that also passes the obstacle.
 
-        ``sum |t_o P|² / sum |P|²`` for a light at `light_angle_deg`. The PSFs are
-        normalised to unit energy, so a renderer that wants a light partly hidden
-        behind lashes to look dimmer multiplies by this.
+        ``sum |t_o P| / sum |P|`` (open areas, the PSFs' normalisation) for a light at
+        `light_angle_deg`. The PSFs are per unit power through the aperture, so a
+        renderer that wants a light partly hidden behind lashes to look dimmer
+        multiplies by this.
         """
         pupil = self.aperture.pupil_transmission(self.propagator.grid)
         field = self.field(light_angle_deg)
-        return jnp.sum(field**2) / jnp.maximum(jnp.sum(pupil**2), 1e-30)
+        return jnp.sum(jnp.abs(field)) / jnp.maximum(jnp.sum(jnp.abs(pupil)), 1e-30)
 
     def obstacle_window_mm(self) -> Float[Array, ""]:
         """Width (mm) of the obstacle plane seen by lights up to `max_light_angle_deg`.

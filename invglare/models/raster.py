@@ -21,7 +21,10 @@ from invglare.optics.propagator import AbstractPropagator, make_propagator
 from invglare.optics.spectral import Spectrum
 
 #: What every PSF of a propagator holds per pixel (for file headers).
-PSF_NORMALISATION = "fraction of the transmitted power per pixel (Y sums to 1 over the full plane)"
+PSF_NORMALISATION = (
+    "fraction of the power through the aperture per pixel (Y sums to just under 1 over the "
+    "full plane)"
+)
 
 #: First zero of the Airy pattern, in units of wavelength / diameter (rad).
 AIRY_FIRST_ZERO = 1.2196698912665045

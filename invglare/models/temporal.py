@@ -35,9 +35,9 @@ character of the pattern (Fresnel number ``r**2 / (lambda d)`` of a few to tens)
 the paper's pre-computed ``E`` texture does. Say so when you quote a distance.
 
 **Brightness.** PSFs have unit energy per wavelength (``brightness="unit"``, as every
-static model), or are scaled by the power the aperture transmits, in mm^2
-(``"transmitted"``): the retinal image then dims with a constricting pupil and goes
-dark during a blink; set the tone map's exposure accordingly.
+static model), or are scaled by the power through the aperture, in mm^2 (its open area,
+``sum |t| pitch^2``; ``"transmitted"``): the retinal image then dims with a constricting
+pupil and goes dark during a blink; set the tone map's exposure accordingly.
 """
 
 from __future__ import annotations
@@ -72,7 +72,7 @@ from invglare.models.raster import (
     default_window_mm,
     raster_header,
 )
-from invglare.optics.fraunhofer import intensity_fft, transmitted_power
+from invglare.optics.fraunhofer import intensity_fft, open_area_px
 from invglare.optics.fresnel import fresnel_phase
 from invglare.optics.propagator import AbstractPropagator
 from invglare.optics.spectral import DEFAULT_WAVELENGTHS, Spectrum, scaled_copies, xyz_to_rgb
@@ -484,9 +484,14 @@ class TemporalGlare(AbstractRasterModel):
 
     def _mono_psf(self, static: SequenceConstants, aperture: Array) -> Float[Array, "npix npix"]:
         prop = self.propagator
-        psf = intensity_fft(aperture * static.fresnel, prop.fft_npix, prop.output.npix)
+        # Per unit power through the aperture, measured on the real raster (the Fresnel
+        # term's phase does not change it).
+        area_px = open_area_px(aperture)
+        psf = intensity_fft(
+            aperture * static.fresnel, prop.fft_npix, prop.output.npix, open_area_px=area_px
+        )
         if self.brightness == "transmitted":
-            psf = psf * transmitted_power(aperture, prop.grid.pitch_mm)
+            psf = psf * (area_px * prop.grid.pitch_mm**2)
         return psf
 
     def _spectral_cf(self, mono: Array) -> Float[Array, "c npix npix"]:

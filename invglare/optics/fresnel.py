@@ -23,7 +23,12 @@ from jaxtyping import Array, ArrayLike, Complex, Float, Inexact
 
 from invglare._core.grids import AngularGrid, ApertureGrid, nm_to_mm, rad_to_deg
 from invglare.optics.fourier import crop_centred, pad_centred
-from invglare.optics.fraunhofer import fraunhofer_mft, intensity_fft
+from invglare.optics.fraunhofer import (
+    fraunhofer_mft,
+    intensity_fft,
+    open_area_px,
+    transmitted_power,
+)
 
 TRANSFER_FUNCTIONS = ("exact", "fresnel")
 
@@ -61,7 +66,11 @@ def fresnel_fft(
 
     On the image plane a pixel is ``distance * pixel_scale`` wide.
     """
-    psf = intensity_fft(field * fresnel_phase(grid, wavelength_nm, distance_mm), fft_npix, out_npix)
+    # The phase leaves the power through the aperture as it is: measured on `field`.
+    psf = intensity_fft(
+        field * fresnel_phase(grid, wavelength_nm, distance_mm), fft_npix, out_npix,
+        open_area_px=open_area_px(field),
+    )  # fmt: skip
     scale_deg = rad_to_deg(nm_to_mm(wavelength_nm) / (fft_npix * grid.pitch_mm))
     return psf, scale_deg
 
@@ -75,8 +84,9 @@ def fresnel_mft(
 ) -> Float[Array, "out out"]:
     """Fresnel PSF (eq. 3) at any output sampling, by matrix Fourier transform."""
     return fraunhofer_mft(
-        field * fresnel_phase(grid, wavelength_nm, distance_mm), grid, wavelength_nm, output
-    )
+        field * fresnel_phase(grid, wavelength_nm, distance_mm), grid, wavelength_nm, output,
+        open_area_mm2=transmitted_power(field, grid.pitch_mm),
+    )  # fmt: skip
 
 
 def transfer_function(

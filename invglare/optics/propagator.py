@@ -4,8 +4,9 @@ A propagator is chosen once, when a model is built, and is an object, not a stri
 abstract :class:`AbstractPropagator` with one final class per way of getting from the
 aperture plane to the angular output grid. Every one of them takes a raster of the
 aperture (amplitude transmission on its :attr:`~AbstractPropagator.grid`) and returns,
-per output pixel, the fraction of the transmitted power landing there (the normalisation
-of :mod:`invglare.optics.fraunhofer`).
+per output pixel, the fraction of the power through the aperture landing there (the
+normalisation of :mod:`invglare.optics.fraunhofer`: a closed-form area passed as
+`open_area_mm2`, else the raster's own transmission).
 
 | class           | `propagation`, `method` | what it does                                    |
 |-----------------|-------------------------|-------------------------------------------------|
@@ -35,7 +36,7 @@ from jaxtyping import Array, ArrayLike, Float, Inexact
 from invglare._core.checks import check_positive, choose
 from invglare._core.grids import AngularGrid, ApertureGrid
 from invglare.errors import ConfigError, PhysicsRangeError
-from invglare.optics.fraunhofer import fraunhofer_mft, intensity_fft
+from invglare.optics.fraunhofer import fraunhofer_mft, intensity_fft, transmitted_power
 from invglare.optics.fresnel import fresnel_phase
 
 PROPAGATIONS = ("fraunhofer", "fresnel")
@@ -66,9 +67,17 @@ class AbstractPropagator(eqx.Module):
 
     @abc.abstractmethod
     def __call__(
-        self, field: Inexact[Array, "n n"], wavelength_nm: ArrayLike
+        self,
+        field: Inexact[Array, "n n"],
+        wavelength_nm: ArrayLike,
+        *,
+        open_area_mm2: ArrayLike | None = None,
     ) -> Float[Array, "npix npix"]:
-        """Unit-energy PSF of `field` (on `grid`) at one wavelength, on `output`."""
+        """PSF of `field` (on `grid`) at one wavelength, on `output`, per unit power.
+
+        `open_area_mm2`: the aperture's area in closed form where the caller knows it;
+        None measures the power through the aperture on the raster, ``sum |t| pitch^2``.
+        """
 
 
 class FraunhoferFFT(AbstractPropagator):
@@ -79,8 +88,9 @@ class FraunhoferFFT(AbstractPropagator):
     propagation: ClassVar[str] = "fraunhofer"
     method: ClassVar[str] = "fft"
 
-    def __call__(self, field, wavelength_nm):
-        return intensity_fft(field, self.fft_npix, self.output.npix)
+    def __call__(self, field, wavelength_nm, *, open_area_mm2=None):
+        area_px = None if open_area_mm2 is None else open_area_mm2 / self.grid.pitch_mm**2
+        return intensity_fft(field, self.fft_npix, self.output.npix, open_area_px=area_px)
 
 
 class FraunhoferMFT(AbstractPropagator):
@@ -89,8 +99,10 @@ class FraunhoferMFT(AbstractPropagator):
     propagation: ClassVar[str] = "fraunhofer"
     method: ClassVar[str] = "mft"
 
-    def __call__(self, field, wavelength_nm):
-        return fraunhofer_mft(field, self.grid, wavelength_nm, self.output)
+    def __call__(self, field, wavelength_nm, *, open_area_mm2=None):
+        return fraunhofer_mft(
+            field, self.grid, wavelength_nm, self.output, open_area_mm2=open_area_mm2
+        )
 
 
 class FresnelFFT(AbstractPropagator):
@@ -100,9 +112,13 @@ class FresnelFFT(AbstractPropagator):
     propagation: ClassVar[str] = "fresnel"
     method: ClassVar[str] = "fft"
 
-    def __call__(self, field, wavelength_nm):
+    def __call__(self, field, wavelength_nm, *, open_area_mm2=None):
+        # The phase leaves the power through the aperture as it is: measured before it.
+        if open_area_mm2 is None:
+            open_area_mm2 = transmitted_power(field, self.grid.pitch_mm)
         field = field * fresnel_phase(self.grid, wavelength_nm, self.focal_length_mm)
-        return intensity_fft(field, self.fft_npix, self.output.npix)
+        area_px = open_area_mm2 / self.grid.pitch_mm**2
+        return intensity_fft(field, self.fft_npix, self.output.npix, open_area_px=area_px)
 
 
 class FresnelMFT(AbstractPropagator):
@@ -111,9 +127,13 @@ class FresnelMFT(AbstractPropagator):
     propagation: ClassVar[str] = "fresnel"
     method: ClassVar[str] = "mft"
 
-    def __call__(self, field, wavelength_nm):
+    def __call__(self, field, wavelength_nm, *, open_area_mm2=None):
+        if open_area_mm2 is None:
+            open_area_mm2 = transmitted_power(field, self.grid.pitch_mm)
         field = field * fresnel_phase(self.grid, wavelength_nm, self.focal_length_mm)
-        return fraunhofer_mft(field, self.grid, wavelength_nm, self.output)
+        return fraunhofer_mft(
+            field, self.grid, wavelength_nm, self.output, open_area_mm2=open_area_mm2
+        )
 
 
 #: (propagation, method) of the config → the final class.

@@ -121,11 +121,12 @@ def test_unobstructed_pupil_gives_airy_pattern():
         psf = np.asarray(model((4.0, -2.0)))  # no obstacle: the angle changes nothing
         theta = np.asarray(model.propagator.output.coords_rad())
         rr = np.hypot(theta[:, None], theta[None, :]) / (lam * 1e-6 / d_mm)
-        # Peak energy per pixel: (sum t d²)² / (sum t² d²) * (dtheta / lambda)², the soft
-        # edge's sum t² being a little smaller than the disk's area.
+        # Peak energy per pixel: (sum t d²)² / (sum t d²) * (dtheta / lambda)², per unit
+        # power through the raster (its open area sum t d², the disk's area).
         t = np.asarray(model.field())
         pitch2 = float(model.propagator.grid.pitch_mm) ** 2
-        peak = (t.sum() * pitch2) ** 2 / ((t**2).sum() * pitch2)
+        assert t.sum() * pitch2 == pytest.approx(math.pi * d_mm**2 / 4, rel=1e-6)
+        peak = t.sum() * pitch2
         peak *= (float(model.propagator.output.pixel_scale_rad) / (lam * 1e-6)) ** 2
         np.testing.assert_allclose(psf, peak * airy(rr), atol=3e-4 * peak)
 

@@ -81,23 +81,29 @@ def test_real_and_complex_fft_paths_agree_even_and_odd_sizes():
         real = intensity_fft(jnp.asarray(field), m, 40)
         cplx = intensity_fft(jnp.asarray(field) + 0j, m, 40)
         reference = np.abs(centred_fft2(pad_centred(jnp.asarray(field, jnp.complex64), m))) ** 2
-        reference = crop_centred(reference, 40) / (m**2 * np.sum(field**2))
+        # Per unit power through the aperture: the raster's transmission sum |t|.
+        reference = crop_centred(reference, 40) / (m**2 * np.sum(np.abs(field)))
         np.testing.assert_allclose(real, reference, atol=1e-6 * reference.max())
         np.testing.assert_allclose(cplx, reference, atol=1e-6 * reference.max())
 
 
-def test_parseval_fft_psf_sums_to_one_within_1e5():
+def test_parseval_fft_psf_sums_to_raster_power_over_its_transmission_within_1e5():
+    """Over the whole plane the raster diffracts sum |t|^2 (Parseval); the PSF is per unit
+    power through the aperture, sum |t|: it sums to their ratio (1 for a 0/1 raster)."""
     rng = np.random.default_rng(2)
     for field in (
         rng.random((64, 64)),
         rng.normal(size=(64, 64)) * np.exp(1j * rng.random((64, 64))),
+        (rng.random((64, 64)) > 0.5).astype(float),
     ):
         psf = intensity_fft(jnp.asarray(field), 128)
-        assert abs(float(psf.sum()) - 1.0) < 1e-5
+        ratio = np.sum(np.abs(field) ** 2) / np.sum(np.abs(field))
+        assert abs(float(psf.sum()) - ratio) < 1e-5 * ratio
 
 
-def test_parseval_mft_energy_matches_aperture_power_within_1e6():
-    """The MFT over the FFT's whole frequency period holds all the transmitted energy."""
+def test_parseval_mft_energy_matches_raster_power_within_1e6():
+    """The MFT over the FFT's whole frequency period holds all the raster's power, sum |t|^2,
+    per unit power through the aperture, sum |t| pitch^2."""
     with x64():
         n, pitch, lam = 32, 0.02, 600.0
         field = jnp.asarray(np.random.default_rng(3).random((n, n)))
@@ -105,10 +111,15 @@ def test_parseval_mft_energy_matches_aperture_power_within_1e6():
         m = 2 * n
         scale = math.degrees(lam * 1e-6 / (m * pitch))
         psf = fraunhofer_mft(field, grid, lam, AngularGrid(m, scale))
-        assert abs(float(psf.sum()) - 1.0) < 1e-6
+        ratio = float(jnp.sum(field**2) / jnp.sum(field))
+        assert abs(float(psf.sum()) - ratio) < 1e-6 * ratio
         assert float(transmitted_power(field, pitch)) == pytest.approx(
-            float(jnp.sum(field**2)) * pitch**2
+            float(jnp.sum(field)) * pitch**2
         )
+        # A closed-form area replaces the raster's transmission in the normalisation.
+        area = 0.5 * float(jnp.sum(field)) * pitch**2
+        halved = fraunhofer_mft(field, grid, lam, AngularGrid(m, scale), open_area_mm2=area)
+        np.testing.assert_allclose(halved, 2.0 * psf, rtol=1e-12)
 
 
 def test_rectangle_gives_sinc2_with_pixel_factor_to_1e9():
