@@ -63,7 +63,7 @@ refine_top = 1
 max_steps = 100
 rtol = 1e-6
 atol = 1e-8
-covariance_scale = "chi2"        # chi2, absolute or a number
+covariance_scale = "auto"        # auto (likelihood: 1, else chi2), chi2, absolute or a number
 batch = "vmap"                   # vmap (all starts at once) or loop
 ```
 

@@ -10,7 +10,8 @@ Contents of ``reports/NAME/``:
 
 | file           | what                                                                  |
 |----------------|-----------------------------------------------------------------------|
-| `report.md`    | parameter table (value ± stderr, truth, error, units), convergence,   |
+| `report.md`    | the flags first (when to distrust the fit), the objective maximised, |
+|                | parameter table (value ± stderr, truth, error, units), convergence,   |
 |                | reduced chi², timing (compile vs solve), the starts, discrete choices |
 | `params.json`  | :meth:`invglare.fit.FitResult.to_dict` plus ``"fit"`` (inputs, wall  |
 |                | time) and ``"discrete"`` (static choices and their losses)            |
@@ -351,11 +352,36 @@ def _stage_views(result: FitResult) -> str:
     )
 
 
+def flag_lines(result: FitResult) -> list[str]:
+    """The report's opening block: the flags of :mod:`invglare.fit.trust`, or that none were
+    raised (and what was checked)."""
+    check = result.optimum_check
+    if result.flags:
+        lines = [f"> **{len(result.flags)} flag{'s' if len(result.flags) > 1 else ''} — "
+                 "when to distrust this fit:**", ">"]  # fmt: skip
+        lines += [f"> - **{f['kind']}**: {f['message']}" for f in result.flags]
+        return [*lines, ""]
+    if check is None and not result.objective:
+        return []  # a result from before flags existed: nothing was checked
+    checked = [f"reduced χ² {_fmt(result.reduced_chi2, 4)}"]
+    if check is not None:
+        checked.insert(
+            0,
+            f"at the likelihood's optimum ({check['steps']} scoring steps gain "
+            f"{_fmt(check['gain'], 2)} in log-likelihood; gradient "
+            f"{_fmt(check['decrement'], 2)} standard errors)",
+        )
+    if result.truth:
+        checked.append("every known truth within 3 standard errors")
+    checked.append("no value at a bound")
+    return [f"> **No flags:** {'; '.join(checked)}.", ""]
+
+
 def render_markdown(result: FitResult, info: ReportInfo, figures: Sequence[str]) -> str:
     """The text of ``report.md``."""
     t = np.asarray(info.target)
     h, w = t.shape
-    lines = [f"# Fit report: {info.name}", ""]
+    lines = [f"# Fit report: {info.name}", "", *flag_lines(result)]
     clipped = ""
     if info.saturation is not None:
         n_sat = int(np.sum(t >= info.saturation * (1 - 1e-4)))
@@ -368,6 +394,7 @@ def render_markdown(result: FitResult, info: ReportInfo, figures: Sequence[str])
         f"- **Ground truth:** `{_rel(info.truth_path)}`" if info.truth_path else
         "- **Ground truth:** unknown (a real photo)",
         f"- **Views:** {_stage_views(result)}",
+        *([f"- **Maximised:** {result.objective}"] if result.objective else []),
         f"- **Solver:** {result.solver}, {info.n_starts} starts, coarse-to-fine "
         f"{list(info.solver.get('coarse_to_fine', (1,)))}, max_steps "
         f"{info.solver.get('max_steps', '—')}",

@@ -144,8 +144,9 @@ def fit_staged(
     ```
     """
     paths = space.paths
-    # Early stages only seed the next: no covariance or images (two compilations fewer).
-    early = {"coarse_to_fine": (1,), "diagnostics": False}
+    # Early stages only seed the next: no covariance or images (two compilations fewer), and
+    # a pixel view there may stay in a variance-stabilised domain.
+    early = {"coarse_to_fine": (1,), "diagnostics": False, "final_likelihood": False}
     pre = [(st.views, {**early, "max_steps": st.max_steps}, st.fixed) for st in stages]
     if resume is None:
         plan = pre + ([(views, {}, ())] if final else [])
