@@ -27,7 +27,11 @@ samples: half their sum of squares is ``-log L`` plus a constant of the data, so
 fit is the maximum-likelihood fit. A final pixel view in a variance-stabilised domain
 (``"anscombe"``, ``"pearson"``: biased) is solved first and then refined on the likelihood
 from its best result (one more stage record, ``"likelihood": true``); the result's
-`objective` says what was maximised.
+`objective` says what was maximised. Such a first pass widens the basin from starts far
+from the optimum: there the Gaussian likelihood punishes a model without light where the
+photo has it by ``(o - e)**2 / V(e)``, far harder than the Anscombe domain's ``~4 g o``, and
+its landscape is rugged (BFGS from 3 starts across a disk's bounds stopped at the lower
+bound on the likelihood alone, at the truth after an Anscombe pass).
 
 The covariance is the inverse of the *information* at the optimum, in latent space, mapped
 to the physical values by the (diagonal) derivative of the transforms, ``C = D C_z D`` with
