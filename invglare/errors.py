@@ -26,3 +26,11 @@ class PhysicsRangeError(InvglareError, ValueError):
 
 class NumericalError(InvglareError, RuntimeError):
     """A computation produced non-finite values or cannot be sampled adequately."""
+
+
+class MemoryLimitError(InvglareError, ValueError):
+    """A requested size needs more memory than allowed (see :mod:`invglare._core.memory`)."""
+
+
+class FolderBusyError(InvglareError, RuntimeError):
+    """An output folder is in use by another run (:func:`invglare.files.atomic.folder_lock`)."""

@@ -324,8 +324,7 @@ def run_gallery(
     """
     from tqdm import tqdm
 
-    from invglare.files.atomic import atomic_write
-    from invglare.fit.report import atomic_directory
+    from invglare.files.atomic import atomic_directory, atomic_write
     from invglare.render.scenes import SCENES
 
     if scene not in SCENES:

@@ -178,7 +178,15 @@ def run_synth(specs: list[Path], out_dir: Path | None = None) -> list[Path]:
     """Synthesise every spec in turn. **Returns:** the photos written."""
     from tqdm import tqdm
 
+    from invglare.files.outputs import output_file, output_folder
+
+    if out_dir is not None:
+        output_folder(out_dir, "--out-dir")
     parsed = [load_synth(p, out_dir) for p in specs]  # every spec is checked before any work
+    for spec in parsed:
+        where = "--out-dir" if out_dir is not None else f"the folder of {spec.path}"
+        output_file(spec.out_exr, where, (".exr",))
+        output_file(spec.out_truth, where, (".json",))
     written = []
     for spec in tqdm(parsed, desc="synth", unit="photo", disable=len(parsed) < 2):
         photo, truth = synthesize(spec)

@@ -65,6 +65,7 @@ import dataclasses
 from pathlib import Path
 from typing import Any
 
+from invglare._core.memory import check_psf_memory
 from invglare.aperture import Aperture
 from invglare.config.camera import camera_from_config
 from invglare.config.eye import eye_from_config
@@ -184,6 +185,11 @@ def read_raster_model(
     if wavelengths_nm is not None:
         lams = wavelengths_nm
     lams = None if lams is None else parse_wavelengths(lams)
+    check_psf_memory(
+        source, aperture_npix=sampling["aperture_npix"], npix=sampling["npix"],
+        n_wavelengths=1 if lams is None else len(lams),
+        names="model.aperture_npix, output.npix, spectrum.wavelengths_nm",
+    )  # fmt: skip
 
     if kind == "aperture":
         return AperturePSF.build(
