@@ -16,21 +16,14 @@ from collections.abc import Iterator
 import numpy as np
 
 from invglare._core.memory import check_memory
-from invglare.errors import ConfigError, InvglareError, PhysicsRangeError
+from invglare.errors import ConfigError, InvglareError, PhysicsRangeError, prefixed
 
 #: Bytes of one float32 sample, and of one complex64 sample.
 F32, C64 = 4, 8
 
 
-@contextlib.contextmanager
-def named(option: str) -> Iterator[None]:
-    """Prefix an :class:`~invglare.errors.InvglareError` raised in the body with `option`."""
-    try:
-        yield
-    except InvglareError as err:
-        if str(err).startswith(option):
-            raise
-        raise type(err)(f"{option}: {err}") from None
+#: Put the option's name in front of a library error raised while its value is read.
+named = prefixed
 
 
 @contextlib.contextmanager

@@ -33,7 +33,7 @@ from typing import Any
 import numpy as np
 
 from invglare.config.synth import OBSERVATION_KEYS, SynthSpec, load_synth
-from invglare.errors import ConfigError, InvglareError
+from invglare.errors import ConfigError, InvglareError, prefixed
 
 log = logging.getLogger("invglare")
 
@@ -73,6 +73,9 @@ def build_truth_forward(spec: SynthSpec):
         space = ParameterSpace(params)
         space.check(forward)
         forward = space.apply(forward, jnp.asarray(list(spec.set_values.values())))
+        # Values written by path skip the readers' range checks: read the result back.
+        with prefixed(f"{spec.path} [set]"):
+            build_model(forward.model.to_config(), spec.base_dir, source=str(spec.path))
     return forward
 
 

@@ -20,9 +20,9 @@ from invglare.dynamics import (
     PupilDynamics,
     VitreousBody,
 )
-from invglare.errors import ConfigError, PhysicsRangeError
+from invglare.errors import ConfigError, PhysicsRangeError, prefixed
 from invglare.models.temporal import _DYNAMICS_PARTS, BRIGHTNESS, TemporalGlare
-from invglare.optics.spectral import DEFAULT_WAVELENGTHS
+from invglare.optics.spectral import DEFAULT_WAVELENGTHS, parse_wavelengths
 
 
 def _part_classes() -> dict[str, type]:
@@ -176,6 +176,8 @@ def temporal_from_config(
         colourspace=spectrum.get("colourspace", str, "sRGB"),
     )
     spectrum.finish()
+    with prefixed("spectrum.wavelengths_nm" if wavelengths_nm is None else "wavelengths"):
+        parse_wavelengths(lams if wavelengths_nm is None else wavelengths_nm)
     out_npix = out_npix if npix is None else npix
     # One FFT per frame at the aperture raster's size: the scaled copies share it.
     check_psf_memory(

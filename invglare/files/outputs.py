@@ -91,17 +91,17 @@ def output_file(path: str | os.PathLike[str], option: str, suffixes: Sequence[st
     **Raises:** :class:`~invglare.errors.ConfigError` (see the module docstring).
     """
     target = Path(path)
+    if target.is_dir():
+        raise ConfigError(
+            f"{_named(option, target)} is a folder; give a file name ending in "
+            f"{' or '.join(suffixes)}"
+        )
     suffix = target.suffix.lower()
     if suffix not in suffixes:
         shown = f"extension {suffix!r}" if suffix else "no extension"
         raise ConfigError(
             f"{_named(option, target)} has {shown}; the format is chosen by the extension: "
             f"{', '.join(suffixes)}"
-        )
-    if target.is_dir():
-        raise ConfigError(
-            f"{_named(option, target)} is a folder; give a file name ending in "
-            f"{' or '.join(suffixes)}"
         )
     _check_parent(target, option)
     return target
