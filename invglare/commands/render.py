@@ -48,10 +48,13 @@ def psf_at_scale(model, scale_deg: float, max_npix: int):
     """
     import jax
 
+    from invglare._core.memory import check_compiled_memory
     from invglare.render.convolve import resample_psf
     from invglare.render.position_glare import psf_npix_at_scale
 
-    psf = jax.jit(lambda m: m())(model)
+    compiled = jax.jit(lambda m: m()).lower(model).compile()
+    check_compiled_memory(compiled, f"the PSF of a {type(model).__name__}")
+    psf = compiled(model)
     own_scale = float(model.pixel_scale_deg)
     if math.isclose(own_scale, scale_deg, rel_tol=1e-6):
         return psf

@@ -427,7 +427,8 @@ def load_fit(
     msec.finish()
     model_path = resolve(base, model_file)
     if not model_path.is_file():
-        raise ConfigError(f"model.config = {model_file!r}: {model_path} does not exist")
+        what = "is a folder, not a TOML file" if model_path.is_dir() else "does not exist"
+        raise ConfigError(f"model.config = {model_file!r}: {model_path} {what}")
     model_config = load_toml(model_path)
 
     target, header_scale = load_target(

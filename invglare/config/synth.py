@@ -191,9 +191,8 @@ def load_synth(path: str | Path, out_dir: str | Path | None = None) -> SynthSpec
             )
         model_path = (spec_path.parent / model_ref).resolve()
         if not model_path.is_file():
-            raise ConfigError(
-                f"synth.model = {model_ref!r}: the model config {model_path} does not exist"
-            )
+            what = "is a folder, not a TOML file" if model_path.is_dir() else "does not exist"
+            raise ConfigError(f"synth.model = {model_ref!r}: the model config {model_path} {what}")
         model_config = load_toml(model_path)
         base_dir = model_path.parent
     else:

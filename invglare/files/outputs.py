@@ -43,6 +43,11 @@ def _named(option: str, path: Path) -> str:
     return f"{option} {str(path)!r}"
 
 
+def _listed(suffixes: Sequence[str]) -> str:
+    """``".exr"``, ``".exr or .png"``, ``".exr, .png or .gif"``."""
+    return " or ".join([", ".join(suffixes[:-1]), suffixes[-1]] if len(suffixes) > 1 else suffixes)
+
+
 def _nearest_existing(path: Path) -> Path:
     p = path
     while not os.path.lexists(p) and p != p.parent:
@@ -94,14 +99,14 @@ def output_file(path: str | os.PathLike[str], option: str, suffixes: Sequence[st
     if target.is_dir():
         raise ConfigError(
             f"{_named(option, target)} is a folder; give a file name ending in "
-            f"{' or '.join(suffixes)}"
+            f"{_listed(suffixes)}"
         )
     suffix = target.suffix.lower()
     if suffix not in suffixes:
         shown = f"extension {suffix!r}" if suffix else "no extension"
         raise ConfigError(
             f"{_named(option, target)} has {shown}; the format is chosen by the extension: "
-            f"{', '.join(suffixes)}"
+            f"{_listed(suffixes)}"
         )
     _check_parent(target, option)
     return target

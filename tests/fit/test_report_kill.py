@@ -36,7 +36,7 @@ diameter_mm = 3.5
 
 [output]
 npix = 32
-pixel_scale_deg = 0.007
+pixel_scale_deg = 0.005
 
 [spectrum]
 wavelengths_nm = 550
@@ -131,7 +131,7 @@ def _check_report(report: Path, *, absent_ok: bool = False) -> None:
     """Complete (params.json parses, report.md and figures there) or, mid-swap, absent."""
     if absent_ok and not report.exists():
         return
-    assert json.loads((report / "params.json").read_text())["paths"]
+    assert json.loads((report / "params.json").read_text())["parameters"]
     assert (report / "report.md").read_text().strip()
     assert (report / "images.png").stat().st_size > 0
 
@@ -178,9 +178,9 @@ def test_killed_fits_never_leave_a_partial_report_nor_strand_the_posterior(probl
 @pytest.mark.slow
 def test_two_fits_into_one_folder_one_report_and_one_clear_refusal(problem):
     first = _invglare(problem, "fit", "fit.toml", "--no-progress")
-    lock = problem / ".report.lock"
+    lock = problem / ".report.lock"  # a killed run may have left one: wait for first's pid
     deadline = time.monotonic() + 120
-    while not lock.exists():
+    while f'"pid": {first.pid},' not in (lock.read_text() if lock.exists() else ""):
         assert first.poll() is None and time.monotonic() < deadline, first.stderr.read()
         time.sleep(0.02)
     second = _run(problem, "fit", "fit.toml", "--no-progress")
