@@ -177,6 +177,8 @@ for cmd, tail in (
     ):
         bad(f"{cmd}-config-{name}", f"{cmd} {{d}}/{name}.toml {tail}", match)
     bad(f"{cmd}-config-folder", f"{cmd} {{d}}/examples {tail}", "is a folder")
+    bad(f"{cmd}-config-device", f"{cmd} /dev/zero {tail}", "not a regular file")
+    bad(f"{cmd}-config-huge", f"{cmd} {{d}}/huge.toml {tail}", "MiB")
     bad(f"{cmd}-config-missing", f"{cmd} {{d}}/nope.toml {tail}", "does not exist")
 bad("render-model-latin1", f"render {SCENE} --model {{d}}/latin1.toml --out {OUT}/r.png",
     "not UTF-8 text")  # fmt: skip

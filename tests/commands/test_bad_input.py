@@ -82,6 +82,8 @@ def world(tmp_path_factory):
     for case in CASES:
         for name, (_, src, section, key, value) in case.files:
             (d / name).write_text(edit_toml((d / src).read_text(), section, key, value))
+    with open(d / "huge.toml", "wb") as f:  # sparse: 64 MiB on paper, nothing on disk
+        f.truncate(64 * 2**20)
     rng = np.random.default_rng(0)
     scene = rng.uniform(0.0, 1.0, (32, 32, 3)).astype(np.float32)
     scene[16, 16] = 5000.0
