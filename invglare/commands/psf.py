@@ -24,7 +24,7 @@ def run_psf(
 ) -> None:
     import jax
 
-    from invglare._core.memory import check_compiled_memory
+    from invglare._core.memory import check_compiled_memory, check_memory
     from invglare.commands import options
     from invglare.config.model import build_model
     from invglare.files.exr import write_exr
@@ -39,8 +39,12 @@ def run_psf(
     n_lams = 1 if lams is None else len(lams)
     if npix is not None:
         options.raster(npix, "--npix", channels=n_lams, copies=2)
-    if lams is not None:
-        options.raster(npix or 64, "--wavelengths-nm", channels=n_lams, copies=2)
+    if lams is not None:  # at least a 64^2 PSF per wavelength, whatever the config says
+        side = npix or 64
+        check_memory(
+            2 * 4.0 * side**2 * n_lams,
+            f"{n_lams} wavelengths (--wavelengths-nm) of a {side}x{side} PSF each",
+        )
     config = load_toml(config_path)
     with options.given(
         ("--npix", npix, "npix"),
