@@ -213,6 +213,7 @@ def oversized(world):
     return results
 
 
+@pytest.mark.slow  # one child for all of them: a JAX import and ~20 refusals, ~1 min
 @pytest.mark.parametrize("case", [c for c in CASES if c.sub], ids=lambda c: c.id)
 def test_oversized_input_is_refused_before_allocating(case: Bad, oversized):
     """Under a 5 GB address-space limit: refused from the estimate, and the child's peak
