@@ -11,6 +11,7 @@ from typing import Any
 
 import jax
 
+from invglare._core.memory import check_memory
 from invglare.aperture.eye import EyeAperture, Eyelashes, Eyelids, Gratings, Particles, Pupil
 from invglare.aperture.eye.schema import (
     EYE_KEYS,
@@ -146,7 +147,18 @@ def _component(
         args["key"] = key
     if "count" in args and "n_max" not in args:
         args["n_max"] = max(1, math.ceil(args["count"]))
+    if "n_max" in args:
+        n = args["n_max"]
+        check_memory(
+            float(n) * POOL_BYTES_PER_ELEMENT,
+            f"{sec.where}.n_max = {n} (a pool of {n} elements, each drawn and rasterised)",
+        )
     return sec.build(cls, **args)
+
+
+#: A lower bound of the memory one pool element (a lash, a particle, a grating) takes: its
+#: drawn values and its raster on an aperture grid of at least 32² float32 samples.
+POOL_BYTES_PER_ELEMENT = 4 * 32**2
 
 
 def _wrap_key(data, where: str) -> jax.Array:

@@ -65,12 +65,13 @@ import dataclasses
 from pathlib import Path
 from typing import Any
 
+from invglare._core.memory import check_psf_memory
 from invglare.aperture import Aperture
 from invglare.config.camera import camera_from_config
 from invglare.config.eye import eye_from_config
 from invglare.config.section import Section, check_sections
 from invglare.config.shapes import shape_from_config
-from invglare.errors import ConfigError
+from invglare.errors import ConfigError, prefixed
 from invglare.models.aperture_psf import AperturePSF
 from invglare.models.kakimoto import COLOURS, MASKINGS, KakimotoGlare
 from invglare.optics.propagator import METHODS, PROPAGATIONS
@@ -183,7 +184,14 @@ def read_raster_model(
     spectrum.finish()
     if wavelengths_nm is not None:
         lams = wavelengths_nm
-    lams = None if lams is None else parse_wavelengths(lams)
+    if lams is not None:
+        with prefixed("spectrum.wavelengths_nm" if wavelengths_nm is None else "wavelengths"):
+            lams = parse_wavelengths(lams)
+    check_psf_memory(
+        source, aperture_npix=sampling["aperture_npix"], npix=sampling["npix"],
+        n_wavelengths=1 if lams is None else len(lams),
+        names="model.aperture_npix, output.npix, spectrum.wavelengths_nm",
+    )  # fmt: skip
 
     if kind == "aperture":
         return AperturePSF.build(

@@ -8,6 +8,7 @@ from typing import Any
 import jax
 import numpy as np
 
+from invglare._core.memory import check_psf_memory
 from invglare.config.eye import eye_from_config
 from invglare.config.raster import KEEP_GRID, GridRequest, square_npix
 from invglare.config.section import Section, check_sections
@@ -19,9 +20,9 @@ from invglare.dynamics import (
     PupilDynamics,
     VitreousBody,
 )
-from invglare.errors import ConfigError, PhysicsRangeError
+from invglare.errors import ConfigError, PhysicsRangeError, prefixed
 from invglare.models.temporal import _DYNAMICS_PARTS, BRIGHTNESS, TemporalGlare
-from invglare.optics.spectral import DEFAULT_WAVELENGTHS
+from invglare.optics.spectral import DEFAULT_WAVELENGTHS, parse_wavelengths
 
 
 def _part_classes() -> dict[str, type]:
@@ -175,10 +176,18 @@ def temporal_from_config(
         colourspace=spectrum.get("colourspace", str, "sRGB"),
     )
     spectrum.finish()
+    with prefixed("spectrum.wavelengths_nm" if wavelengths_nm is None else "wavelengths"):
+        parse_wavelengths(lams if wavelengths_nm is None else wavelengths_nm)
+    out_npix = out_npix if npix is None else npix
+    # One FFT per frame at the aperture raster's size: the scaled copies share it.
+    check_psf_memory(
+        source, aperture_npix=kwargs["aperture_npix"] or out_npix // 2, npix=out_npix,
+        n_wavelengths=1, names="model.aperture_npix, output.npix",
+    )  # fmt: skip
     return TemporalGlare.build(
         eye,
         EyeDynamics(**parts),
-        npix=out_npix if npix is None else npix,
+        npix=out_npix,
         wavelengths_nm=lams if wavelengths_nm is None else wavelengths_nm,
         **colour,
         **kwargs,

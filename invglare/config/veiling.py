@@ -71,6 +71,7 @@ from typing import Any
 
 import numpy as np
 
+from invglare._core.memory import check_psf_memory
 from invglare.config.raster import KEEP_GRID, GridRequest
 from invglare.config.section import Section
 from invglare.errors import ConfigError, PhysicsRangeError
@@ -372,9 +373,13 @@ def veiling_from_config(
         ):
             raise ConfigError(f"output.npix must be an integer or [ny, nx], got {shape!r}")
         shape = (shape[0], shape[1])
+    shape = shape if grid.npix is None else grid.npix
+    if isinstance(shape, int) or all(isinstance(v, int) and v > 0 for v in shape):
+        check_psf_memory(source, aperture_npix=None, npix=shape, n_wavelengths=1,
+                         names="output.npix")  # fmt: skip
     return VeilingGlare.build(
         ghosts,
-        npix=shape if grid.npix is None else grid.npix,
+        npix=shape,
         pixel_scale_deg=scale if grid.pixel_scale_deg is None else grid.pixel_scale_deg,
         **options,
     )
