@@ -50,16 +50,27 @@ def _maxrss_bytes(who=resource.RUSAGE_SELF) -> int:
     return resource.getrusage(who).ru_maxrss * 1024
 
 
+#: A folder in which not even root can create anything (sysfs), for file systems or
+#: containers where ``chattr +i`` is refused (overlayfs, no CAP_LINUX_IMMUTABLE).
+_SYSFS_FOLDER = Path("/sys/kernel")
+
+
 def _make_unwritable(folder: Path) -> None:
-    if os.geteuid() == 0:
-        subprocess.run(["chattr", "+i", str(folder)], check=True, capture_output=True)
-    else:
+    """`folder` becomes a folder nobody can write into (made, or linked to one)."""
+    folder.mkdir()
+    if os.geteuid() != 0:
         folder.chmod(0o555)
+    elif subprocess.run(["chattr", "+i", str(folder)], capture_output=True).returncode != 0:
+        folder.rmdir()
+        folder.symlink_to(_SYSFS_FOLDER, target_is_directory=True)
     with pytest.raises(OSError):  # the premise of the read-only cases
         (folder / "probe").write_text("x")
 
 
 def _make_writable(folder: Path) -> None:
+    if folder.is_symlink():
+        folder.unlink()
+        return
     if os.geteuid() == 0:
         subprocess.run(["chattr", "-i", str(folder)], check=False, capture_output=True)
     folder.chmod(0o755)
@@ -104,7 +115,6 @@ def world(tmp_path_factory):
     (d / "tests").mkdir()
     (d / "tests" / "golden").symlink_to(ROOT / "tests" / "golden")  # regress reads them
     ro = d / "readonly"
-    ro.mkdir()
     _make_unwritable(ro)
     yield d
     _make_writable(ro)
