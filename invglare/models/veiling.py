@@ -123,6 +123,8 @@ class VeilingGlare(AbstractGlareModel):
     - `sigma_strength`: de-ringing strength (>= 0; a parameter).
     - `light_angle_deg`: the light's direction ``(x, y)`` when a call gives none (a
       parameter: a fit of a photo finds where its light was; default on axis).
+      Screen and directions share axes: see
+      :mod:`invglare.models.veiling_ghosts` ("Screen coordinates").
     - `npix`: ``(ny, nx)`` screen size (static).
     - `pixel_scale_deg`: degrees per pixel (static).
     - `n_harmonics`: ``N``, the highest harmonic on each axis (static).
@@ -372,8 +374,10 @@ class VeilingGlare(AbstractGlareModel):
         fit adjusts).
 
         **Returns:** ``(ny, nx)``, fraction of the light's flux per pixel, with the
-        optical axis at pixel ``(ny // 2, nx // 2)``; the light's direct image would
-        sit at its direction (not drawn).
+        optical axis at pixel ``(ny // 2, nx // 2)``, x growing with the column and y
+        with the row (down the frame as image files show it); the light's direct image
+        would sit at :func:`~invglare.models.veiling_ghosts.screen_position_deg` of its
+        direction (not drawn).
 
         **Example:**
 
