@@ -691,12 +691,78 @@ def test_veiling_glare_index_of_a_uniform_disk_gsf():
 
 
 def test_model_veiling_glare_index_matches_its_ghost():
+    """A ghost that keeps its offset from the light (ratio 1): both indices are the closed form."""
     with x64():
-        ghosts = GhostSet.build([[0.0, 0.0]], [4.0], [1.0], softness_deg=0.05, transmission=0.9)
-        model = VeilingGlare.build(ghosts, npix=128, pixel_scale_deg=0.1, n_harmonics=96)
+        ghosts = GhostSet.build(
+            [[0.0, 0.0]], [4.0], [1.0], softness_deg=0.05, ratio=1.0, transmission=0.9
+        )
+        model = VeilingGlare.build(ghosts, npix=64, pixel_scale_deg=0.2, n_harmonics=48)
         energy = float(ghosts.energy("disk")[0])
         expected = energy * (1 - 1.0 / 16.0) / (0.9 + energy)
-        assert float(model.veiling_glare_index(1.0)) == pytest.approx(expected, rel=5e-3)
+        assert float(model.veiling_glare_index_on_axis(1.0)) == pytest.approx(expected, rel=5e-3)
+        resolved = float(model.veiling_glare_index(1.0, 6.0, step_px=1))
+        assert resolved == pytest.approx(expected, rel=5e-3)
+
+
+def _brute_force_vgi(model, spot_deg, field_deg):
+    """Sum over one light per screen pixel of the glare its image puts on the centre pixel."""
+    ny, nx = model.npix
+    rows, cols = np.meshgrid(np.arange(ny) - ny // 2, np.arange(nx) - nx // 2, indexing="ij")
+    distance = np.hypot(rows, cols)
+    scale = model.pixel_scale_deg
+    spot = np.clip(spot_deg / scale - distance + 0.5, 0, 1)
+    field = np.maximum(np.clip(field_deg / scale - distance + 0.5, 0, 1), spot)
+    screen = np.stack([cols.ravel(), rows.ravel()], -1) * scale
+    images = np.asarray(model.batch(direction_of_screen_deg(screen)))
+    at_centre = images[:, ny // 2, nx // 2]
+    total = np.sum(at_centre * field.ravel())
+    veiled = np.sum(at_centre * (field - spot).ravel())
+    return veiled / (float(model.direct_fraction(jnp.zeros(2))) + total)
+
+
+def test_direction_resolved_vgi_matches_a_brute_force_sum_over_light_directions():
+    """Issue 27 (9): ISO 9358's index from every light direction, against model.batch.
+
+    Ghosts that move at other rates than the light (as lens ghosts do) break shift
+    invariance: the on-axis GSF then misstates the index.
+    """
+    with x64():
+        ghosts = GhostSet.build(
+            [[0.0, 0.0], [1.0, -0.5], [-0.8, 0.3]],
+            [1.5, 2.5, 1.0],
+            [0.05, 0.02, 0.08],
+            softness_deg=0.1,
+            ratio=[-0.5, 0.4, 1.8],
+            transmission=0.95,
+        )
+        model = VeilingGlare.build(ghosts, npix=(20, 24), pixel_scale_deg=0.3, n_harmonics=16)
+        brute = _brute_force_vgi(model, 0.75, 2.8)
+        exact = float(model.veiling_glare_index(0.75, 2.8, step_px=1))
+        assert exact == pytest.approx(brute, rel=1e-9)
+        coarse = float(model.veiling_glare_index(0.75, 2.8, step_px=3))
+        assert coarse == pytest.approx(brute, rel=0.03)
+        on_axis = float(model.veiling_glare_index_on_axis(0.75, 2.8))
+        assert abs(on_axis / brute - 1.0) > 0.2  # the approximation is not the measure
+        header = model.header()  # both reported, for the whole screen as the field
+        assert header["veilingGlareIndex"] == pytest.approx(
+            float(model.veiling_glare_index(0.5)), rel=1e-6
+        )
+        assert header["veilingGlareIndexOnAxisGSF"] == pytest.approx(
+            float(model.veiling_glare_index_on_axis(0.5)), rel=1e-6
+        )
+
+
+@pytest.mark.slow
+def test_cooke_vgi_direction_resolved_is_a_third_of_the_on_axis_approximation():
+    """Issue 27 (9): 1.45e-4 against 4.7e-4 for the bundled Cooke (0.5 deg spot)."""
+    from invglare.config.model import build_model
+    from invglare.files.toml import load_toml
+
+    model = build_model(load_toml(EXAMPLES / "veiling_cooke.toml"), base_dir=EXAMPLES)
+    resolved = float(model.veiling_glare_index(0.5, step_px=32))
+    on_axis = float(model.veiling_glare_index_on_axis(0.5))
+    assert resolved == pytest.approx(1.45e-4, rel=0.03)
+    assert on_axis == pytest.approx(4.71e-4, rel=0.01)
 
 
 # ------------------------------------------------------------------------------ configs
