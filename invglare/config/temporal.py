@@ -20,8 +20,14 @@ from invglare.dynamics import (
     VitreousBody,
 )
 from invglare.errors import ConfigError, PhysicsRangeError
-from invglare.models.temporal import _DYNAMICS_PARTS, BRIGHTNESS, TemporalGlare
-from invglare.optics.spectral import DEFAULT_WAVELENGTHS
+from invglare.models.temporal import (
+    _DYNAMICS_PARTS,
+    BRIGHTNESS,
+    EYE_FOCAL_LENGTH_MM,
+    FRESNEL_MODES,
+    TemporalGlare,
+)
+from invglare.optics.spectral import COPY_WEIGHTINGS, DEFAULT_WAVELENGTHS
 
 
 def _part_classes() -> dict[str, type]:
@@ -88,13 +94,17 @@ def temporal_from_config(
     [model]
     kind = "temporal"
     aperture_npix = 256            # default output.npix / 2
-    focal_length_mm = 1000.0       # distance in E (default: the shortest the raster resolves)
+    focal_length_mm = 17.0         # pupil-to-retina distance d of eq. 3 (default 17)
+    fresnel = "retina"             # E at d, alias-free (the paper's eq. 3, the default);
+                                   #   "effective": E at fresnel_distance_mm (an
+                                   #   approximation: a defocus of 1000 / d D); "none": E = 1
+    # fresnel_distance_mm = 600.0  # with fresnel = "effective" only
     window_mm = 8.5                # default: the largest pupil of the dynamics + 2 px
     fps = 30.0
     seed = 0                       # or key_data = [..] (what the model's to_config() writes)
     field_luminance_cd_m2 = 100.0  # adaptation when no frame is given
     luminance_scale = 1.0          # cd/m^2 per frame unit
-    brightness = "unit"            # or "transmitted"
+    brightness = "transmitted"     # eq. 3's K: glare ~ pupil area (default), or "unit"
     tonemap = "gamma"              # any of invglare.render.TONEMAPS
     [model.tonemap_params]         # keyword parameters of the tone map
     exposure = 1.0
@@ -111,6 +121,8 @@ def temporal_from_config(
     reference_wavelength_nm = 575.0
     illuminant = "E"
     colourspace = "sRGB"
+    copy_weighting = "energy"      # each copy keeps the 575 nm PSF's energy; "paper": the
+                                   #   paper's plain look-up, (lambda / 575)^2 of it
     ```
 
     **Raises:** `ConfigError` naming the key for unknown keys, wrong types or choices;
@@ -145,14 +157,16 @@ def temporal_from_config(
     for name in params.table:
         params.get(name, float)
     kwargs = dict(
-        focal_length_mm=model.get("focal_length_mm", float, None),
+        focal_length_mm=model.get("focal_length_mm", float, EYE_FOCAL_LENGTH_MM),
+        fresnel=model.choice("fresnel", FRESNEL_MODES, "retina"),
+        fresnel_distance_mm=model.get("fresnel_distance_mm", float, None),
         aperture_npix=model.get("aperture_npix", int, None),
         window_mm=model.get("window_mm", float, None),
         fps=model.get("fps", float, 30.0),
         key=key,
         field_luminance_cd_m2=model.get("field_luminance_cd_m2", float, 100.0),
         luminance_scale=model.get("luminance_scale", float, 1.0),
-        brightness=model.choice("brightness", BRIGHTNESS, "unit"),
+        brightness=model.choice("brightness", BRIGHTNESS, "transmitted"),
         tonemap_name=model.get("tonemap", str, "gamma"),
         tonemap_params={k: float(v) for k, v in params.table.items()} or None,
     )
@@ -173,6 +187,7 @@ def temporal_from_config(
         reference_wavelength_nm=spectrum.get("reference_wavelength_nm", float, 575.0),
         illuminant=spectrum.get("illuminant", str, "E"),
         colourspace=spectrum.get("colourspace", str, "sRGB"),
+        copy_weighting=spectrum.choice("copy_weighting", COPY_WEIGHTINGS, "energy"),
     )
     spectrum.finish()
     return TemporalGlare.build(

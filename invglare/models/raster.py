@@ -69,6 +69,7 @@ def build_propagator(
         aperture_npix=aperture_npix,
         propagation=propagation,
         method=method,
+        longest_wavelength_nm=max(computed),
     )
     if propagator.method == "fft" and len(computed) > 1:
         # "auto" chose the FFT for the first wavelength; the others need other scales.

@@ -288,12 +288,15 @@ CASES: tuple[Case, ...] = (
     Case(
         "temporal_frame",
         "temporal eye (Ritschel): frame 0 of key 3 adapted to 10 cd/m^2, lids, lashes, lens "
-        "particles and gratings, Fresnel at 575 nm, 8 scaled copies 400-700 nm",
+        "particles and gratings, E at an effective 1200 mm (575 nm), unit energy, 8 scaled "
+        "copies 400-700 nm",
         {
             "model": {
                 "kind": "temporal",
                 "aperture_npix": 128,
-                "focal_length_mm": 1200.0,
+                "fresnel": "effective",
+                "fresnel_distance_mm": 1200.0,
+                "brightness": "unit",
                 "seed": 3,
                 "field_luminance_cd_m2": 10.0,
                 "eye": {
