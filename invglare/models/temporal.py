@@ -76,7 +76,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float, Key
 
-from invglare._core.checks import as_float, as_key
+from invglare._core.checks import as_float, as_key, is_concrete
 from invglare.aperture.eye import EyeAperture, Particles, eye_to_config
 from invglare.dynamics import (
     DynamicsState,
@@ -88,7 +88,7 @@ from invglare.dynamics import (
 from invglare.dynamics.lens import safe_sqrt
 from invglare.dynamics.noise import uniform
 from invglare.dynamics.pupil import MOON_SPENCER_RANGE_MM
-from invglare.errors import ConfigError, PhysicsRangeError
+from invglare.errors import ConfigError, InputDataError, PhysicsRangeError
 from invglare.models.base import broadcast_image, light_angle, light_angles
 from invglare.models.raster import (
     AbstractRasterModel,
@@ -114,6 +114,7 @@ __all__ = [
     "TemporalGlare",
     "check_n_frames",
     "frame_luminance_cd_m2",
+    "head_motion",
 ]
 
 #: How a frame's PSF is scaled: by the power the aperture transmits (mm^2; the paper's K of
@@ -442,10 +443,25 @@ class TemporalGlare(AbstractRasterModel):
         """The dynamics' numbers for the frame `state` is at."""
         return self.dynamics.values(state, self.key, self.eye.pupil.diameter_mm)
 
-    def advance(self, state: DynamicsState, frame_luminance: ArrayLike) -> DynamicsState:
-        """The state one frame later, after a frame of mean luminance `frame_luminance` (cd/m^2)."""
+    def advance(
+        self,
+        state: DynamicsState,
+        frame_luminance: ArrayLike,
+        head_acceleration_rad_s2: Float[ArrayLike, " 3"] | None = None,
+    ) -> DynamicsState:
+        """The state one frame later, after a frame of mean luminance `frame_luminance` (cd/m^2).
+
+        `head_acceleration_rad_s2`: the observer's angular acceleration during the frame
+        (rad/s^2, ``(3,)``: x, y in the pupil plane, z along the axis), the paper's
+        "observer motion" that swings the vitreous; None: a still head.
+        """
         return self.dynamics.step(
-            state, frame_luminance, self.frame_s, self.key, self.eye.pupil.diameter_mm
+            state,
+            frame_luminance,
+            self.frame_s,
+            self.key,
+            self.eye.pupil.diameter_mm,
+            head_acceleration_rad_s2,
         )
 
     # ----------------------------------------------------------------------------- aperture
@@ -681,6 +697,7 @@ class TemporalGlare(AbstractRasterModel):
         n_frames: int,
         luminance_cd_m2: Float[ArrayLike, "*n"] | None = None,
         state: DynamicsState | None = None,
+        head_acceleration_rad_s2: Float[ArrayLike, "*n 3"] | None = None,
     ) -> tuple[DynamicsState, Float[Array, "n npix npix *c"]]:
         """PSFs of `n_frames` consecutive frames, by one `lax.scan`.
 
@@ -691,6 +708,8 @@ class TemporalGlare(AbstractRasterModel):
           ``(n_frames,)`` array; default the model's `field_luminance_cd_m2`.
         - `state`: the first frame's state (default :meth:`init_state` adapted to the
           first frame's luminance).
+        - `head_acceleration_rad_s2`: the observer's angular acceleration (rad/s^2), one
+          ``(3,)`` for every frame or ``(n_frames, 3)``; default a still head.
 
         **Returns:** the state after the last frame, and the PSFs.
         """
@@ -699,12 +718,14 @@ class TemporalGlare(AbstractRasterModel):
         lum = jnp.broadcast_to(lum, (n_frames,))
         state = self.init_state(lum[0]) if state is None else state
         static = self.sequence_constants()
+        head = head_motion(head_acceleration_rad_s2, n_frames, lum.dtype)
 
-        def body(s, frame_lum):
+        def body(s, inputs):
+            frame_lum, frame_head = inputs
             cf = self.psf_cf(static, s)
-            return self.advance(s, frame_lum), cf
+            return self.advance(s, frame_lum, frame_head), cf
 
-        state, cfs = jax.lax.scan(body, state, lum)
+        state, cfs = jax.lax.scan(body, state, (lum, head))
         return state, (cfs[:, 0] if not self.is_spectral else jnp.moveaxis(cfs, 1, -1))
 
 
@@ -721,6 +742,25 @@ def _check_effective_distance(grid, wavelength_nm: float, distance_mm: float) ->
             f"the {grid.npix}-sample raster resolves; use aperture_npix >= {needed}, a "
             f"distance >= {shortest:.4g} mm, or fresnel = 'retina' (alias-free at any raster)"
         )
+
+
+def head_motion(
+    head_acceleration_rad_s2: Float[ArrayLike, "*n 3"] | None, n_frames: int, dtype
+) -> Float[Array, "n 3"]:
+    """Per-frame observer angular accelerations ``(n_frames, 3)`` (rad/s^2; zeros if None).
+
+    **Raises:** `InputDataError` for another shape or non-finite values.
+    """
+    if head_acceleration_rad_s2 is None:
+        return jnp.zeros((n_frames, 3), dtype)
+    head = as_float(head_acceleration_rad_s2)
+    if head.shape not in ((3,), (n_frames, 3)):
+        raise InputDataError(
+            f"head_acceleration_rad_s2 must have shape (3,) or ({n_frames}, 3), got {head.shape}"
+        )
+    if is_concrete(head) and not bool(jnp.all(jnp.isfinite(head))):
+        raise InputDataError("head_acceleration_rad_s2 must be finite")
+    return jnp.broadcast_to(head, (n_frames, 3)).astype(dtype)
 
 
 def check_n_frames(n_frames: int) -> None:

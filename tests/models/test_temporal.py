@@ -274,6 +274,18 @@ def test_lens_particles_move_inside_the_lens_and_vitreous_particles_rigidly(mode
     assert moved
 
 
+def test_observer_motion_swings_the_vitreous_through_the_model(model):
+    """Issue 27 (5): the head's angular acceleration is a per-frame input of the sequence."""
+    state = model.init_state()
+    head = jnp.array([0.0, 20.0, 0.0])
+    still = ADVANCE(model, state)
+    turned = jax.jit(lambda m, s, h: m.advance(s, m.field_luminance_cd_m2, h))(model, state, head)
+    dv = np.asarray(turned.vitreous.velocity_rad_s - still.vitreous.velocity_rad_s)
+    np.testing.assert_allclose(dv, [0.0, -20.0 * model.frame_s, 0.0], rtol=1e-5, atol=1e-9)
+    with pytest.raises(InputDataError, match="head_acceleration_rad_s2"):
+        model.psf_sequence(2, head_acceleration_rad_s2=jnp.zeros((3, 3)))
+
+
 def test_pupil_adapts_to_the_frames_luminance():
     dyn = EyeDynamics(pupil=PupilDynamics(hippus_amplitude_mm=0.0))
     m = TemporalGlare.build(EyeAperture(pupil=Pupil(4.0)), dyn, npix=32)
