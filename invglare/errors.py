@@ -26,3 +26,11 @@ class PhysicsRangeError(InvglareError, ValueError):
 
 class NumericalError(InvglareError, RuntimeError):
     """A computation produced non-finite values or cannot be sampled adequately."""
+
+
+class RasterWarning(UserWarning):
+    """A structure of the aperture that the raster or the output field cannot show in full.
+
+    The model still runs (its blocked power is right); the message names the raster or
+    field that would show it.
+    """

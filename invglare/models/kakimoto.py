@@ -82,6 +82,7 @@ from invglare.models.raster import (
     build_propagator,
     raster_header,
 )
+from invglare.models.structures import check_structures
 from invglare.optics.propagator import AbstractPropagator
 from invglare.optics.spectral import DEFAULT_WAVELENGTHS, Spectrum, parse_wavelengths
 
@@ -283,6 +284,15 @@ class KakimotoGlare(AbstractRasterModel):
             window_mm=window_mm,
             propagation=propagation,
             method=method,
+        )
+        # Structures finer than the raster: gratings it aliases are refused, the rest warned.
+        check_structures(
+            aperture,
+            propagator.grid,
+            tuple(float(w) for w in np.asarray(spectrum.wavelengths_nm).reshape(-1)),
+            None
+            if propagator.method == "transfer"
+            else math.radians(float(propagator.output.half_field_deg)),
         )
         # Apertures whose rasters have data-dependent static shapes (the eye's local stamps)
         # fix them for this grid here, so that the model can be jitted and differentiated.

@@ -96,6 +96,7 @@ from invglare.models.raster import (
     default_window_mm,
     raster_header,
 )
+from invglare.models.structures import check_structures
 from invglare.optics.fraunhofer import intensity_fft, transmitted_power
 from invglare.optics.fresnel import fresnel_chirp_aliased, fresnel_phase
 from invglare.optics.propagator import AbstractPropagator
@@ -398,6 +399,15 @@ class TemporalGlare(AbstractRasterModel):
             _check_effective_distance(
                 propagator.grid, reference_wavelength_nm, float(fresnel_distance_mm)
             )
+        # Structures finer than the raster: gratings it aliases are refused, the rest warned.
+        check_structures(
+            eye,
+            propagator.grid,
+            tuple(float(w) for w in np.asarray(spectrum.wavelengths_nm).reshape(-1)),
+            None
+            if fresnel == "retina"
+            else math.radians(float(propagator.output.half_field_deg)),
+        )
         return cls(
             eye=eye.with_stamp_windows(propagator.grid),
             dynamics=dynamics,

@@ -65,7 +65,7 @@ def small_eye() -> EyeAperture:
             count=3.5,
             n_max=4,
             key=5,
-            spacing_mm=0.3,
+            spacing_mm=0.45,  # resolved by the 32-pixel raster (Nyquist period 0.42 mm)
             line_thickness_mm=0.12,
             line_length_mm=0.8,
             inner_radius_mm=1.0,
@@ -505,7 +505,7 @@ def test_frame_psf_gradients_match_finite_differences_in_float64():
             lambda m: m.eye.gratings.spacing_mm,  # grating spacing
             lambda m: m.eye.upper_lashes.thickness_mm,  # a lash parameter
         )
-        x0 = jnp.array([5.0, 12.5, 0.12, 0.3, 0.12])
+        x0 = jnp.array([5.0, 12.5, 0.12, 0.45, 0.12])
         # Central-difference steps where the h² truncation shows (measured relative errors
         # 1e-6 to 3e-6 here, 16 times less at a quarter step), except the particle size:
         # its soft rasters have kinks (an edge crossing a pixel's corner) within 1e-4 mm,
