@@ -38,6 +38,8 @@ or a cross-screen filter) masked by a pupil (the eye's, or a diaphragm). They ta
     masking = "fixed"             # or "position" (the obstacle scrolls with the light)
     colour = "spectral"           # or "paper_rgb" (680/530/460 nm as R, G, B)
     max_light_angle_deg = 0.0
+    wide_angle = "ensemble"       # an eye's particles beyond the raster's band: "ensemble",
+                                  #   "phases" (with their positions) or "none"
 
     [model.eye]                   # see invglare.config.eye.eye_from_config
     seed = 7
@@ -72,7 +74,7 @@ from invglare.config.section import Section, check_sections
 from invglare.config.shapes import shape_from_config
 from invglare.errors import ConfigError
 from invglare.models.aperture_psf import AperturePSF
-from invglare.models.kakimoto import COLOURS, MASKINGS, KakimotoGlare
+from invglare.models.kakimoto import COLOURS, MASKINGS, WIDE_ANGLE, KakimotoGlare
 from invglare.optics.propagator import METHODS, PROPAGATIONS
 from invglare.optics.spectral import SPECTRAL_METHODS, parse_wavelengths
 
@@ -156,6 +158,7 @@ def read_raster_model(
             masking=model.choice("masking", MASKINGS, "fixed"),
             colour=model.choice("colour", COLOURS, "spectral"),
             max_light_angle_deg=model.get("max_light_angle_deg", float, 0.0),
+            wide_angle=model.choice("wide_angle", WIDE_ANGLE, "ensemble"),
         )
     sampling = dict(
         propagation=model.choice("propagation", PROPAGATIONS, "fraunhofer"),

@@ -37,6 +37,7 @@ from jaxtyping import Array, ArrayLike, Float, Inexact
 from invglare._core.checks import check_positive, choose
 from invglare._core.grids import AngularGrid, ApertureGrid
 from invglare.errors import ConfigError, PhysicsRangeError
+from invglare.optics.fourier import pad_centred
 from invglare.optics.fraunhofer import fraunhofer_mft, intensity_fft
 from invglare.optics.fresnel import fresnel_near_field, fresnel_phase, near_field_fft_npix
 
@@ -86,13 +87,23 @@ class FraunhoferFFT(AbstractPropagator):
 
 
 class FraunhoferMFT(AbstractPropagator):
-    """Far field by matrix Fourier transform: any output pixel scale and field."""
+    """Far field by matrix Fourier transform: any output pixel scale and field.
 
+    With `core_npix` (static) below the output's size, the transform covers only the
+    central ``core_npix`` pixels, the raster's alias-free band, and the rest of the output
+    is 0: what lies beyond is left to a closed-form term of the model (the wide-angle
+    scatter of :mod:`invglare.optics.particles`).
+    """
+
+    core_npix: int | None = eqx.field(static=True, default=None, kw_only=True)
     propagation: ClassVar[str] = "fraunhofer"
     method: ClassVar[str] = "mft"
 
     def __call__(self, field, wavelength_nm):
-        return fraunhofer_mft(field, self.grid, wavelength_nm, self.output)
+        if self.core_npix is None or self.core_npix >= self.output.npix:
+            return fraunhofer_mft(field, self.grid, wavelength_nm, self.output)
+        core = AngularGrid(self.core_npix, self.output.pixel_scale_deg)
+        return pad_centred(fraunhofer_mft(field, self.grid, wavelength_nm, core), self.output.npix)
 
 
 class FresnelFFT(AbstractPropagator):
@@ -164,6 +175,7 @@ def make_propagator(
     propagation: str = "fraunhofer",
     method: str = "auto",
     longest_wavelength_nm: float | None = None,
+    beyond_band: bool = False,
 ) -> AbstractPropagator:
     """The propagator for a sampling, refusing ones that would alias.
 
@@ -177,6 +189,9 @@ def make_propagator(
       output field must stay within its alias-free band.
     - `longest_wavelength_nm`: the longest wavelength evaluated (``"transfer"`` samples
       its transfer function for it); default the larger of the two above.
+    - `beyond_band`: let a Fraunhofer MFT output reach beyond the raster's alias-free
+      band: the transform covers the band's pixels (`FraunhoferMFT.core_npix`) and the
+      model fills the rest in closed form; otherwise such an output is refused.
     - `npix`, `pixel_scale_deg`: the output grid; without a pixel scale, the FFT's
       native one (with ``fft_npix = max(npix, 2 * aperture_npix)``).
     - `propagation`: ``"fraunhofer"`` or ``"fresnel"``.
@@ -250,11 +265,17 @@ def make_propagator(
                 f"aperture raster resolves; use aperture_npix >= {needed}, a longer "
                 "focal_length_mm, or propagation = 'fraunhofer'"
             )
+    core_npix = None
     if method == "mft":
         half_field = math.radians(float(output.half_field_deg))
+        band = math.degrees(0.5 / pitch * shortest_wavelength_nm * 1e-6)
+        if beyond_band and propagation == "fraunhofer" and float(output.half_field_deg) > band:
+            # The largest centred square inside the band, of the output's parity.
+            core_npix = 2 * int(band / float(output.pixel_scale_deg) * (1 + 1e-6)) + npix % 2
+            core_npix = max(core_npix - (core_npix - npix) % 2, 1)
         # A relative margin: a field exactly at the band edge (the FFT's own) is fine
         # and must not be refused for a float32 rounding error.
-        if half_field / (shortest_wavelength_nm * 1e-6) > 0.5 / pitch * (1 + 1e-6):
+        elif half_field / (shortest_wavelength_nm * 1e-6) > 0.5 / pitch * (1 + 1e-6):
             supported = math.degrees(0.5 / pitch * shortest_wavelength_nm * 1e-6)
             raise PhysicsRangeError(
                 f"the output field reaches {float(output.half_field_deg):.4g} deg but the "
@@ -266,6 +287,10 @@ def make_propagator(
     grid = ApertureGrid.from_width(aperture_npix, window_mm)
     if method == "fft":
         return cls(grid=grid, output=output, focal_length_mm=focal_length_mm, fft_npix=fft_npix)
+    if core_npix is not None:
+        return cls(
+            grid=grid, output=output, focal_length_mm=focal_length_mm, core_npix=core_npix
+        )
     return cls(grid=grid, output=output, focal_length_mm=focal_length_mm)
 
 
