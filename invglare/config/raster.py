@@ -144,11 +144,11 @@ def read_raster_model(
     else:
         table = model.get(kind, dict, required=True)
         if kind == "eye":
-            aperture = eye_from_config(table, "model.eye")
+            aperture = eye_from_config(table, "model.eye", base_dir)
             focal = model.get("focal_length_mm", float, 17.0)
             distance = model.get("obstacle_distance_mm", float, 8.0)
         else:
-            aperture = camera_from_config(table, "model.camera")
+            aperture = camera_from_config(table, "model.camera", base_dir)
             focal = model.get("focal_length_mm", float, None)
             if focal is None:
                 focal = float(aperture.diaphragm.focal_length_mm)

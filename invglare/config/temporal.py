@@ -84,8 +84,7 @@ def temporal_from_config(
     **Arguments:**
 
     - `config`: the whole parsed TOML (sections ``model``, ``output``, ``spectrum``).
-    - `base_dir`: where relative paths would be resolved (the temporal model has none;
-      accepted for the common interface).
+    - `base_dir`: what the eye's relative image paths are resolved against.
     - `grid`: its `npix` and `wavelengths_nm` override ``output.npix`` and
       ``spectrum.wavelengths_nm``; a `pixel_scale_deg` is refused (the PSF is at the FFT's
       native scale).
@@ -128,7 +127,6 @@ def temporal_from_config(
     **Raises:** `ConfigError` naming the key for unknown keys, wrong types or choices;
     `PhysicsRangeError` for values out of range.
     """
-    del base_dir  # no file references in a temporal model
     check_sections(config, ("model", "output", "spectrum"), source)
     npix = square_npix(grid.npix, source)
     pixel_scale_deg, wavelengths_nm = grid.pixel_scale_deg, grid.wavelengths_nm
@@ -136,7 +134,7 @@ def temporal_from_config(
     kind = model.get("kind", str, required=True)
     if kind != "temporal":
         raise ConfigError(f"model.kind = {kind!r}; temporal_from_config reads kind = 'temporal'")
-    eye = eye_from_config(model.get("eye", dict, required=True), "model.eye")
+    eye = eye_from_config(model.get("eye", dict, required=True), "model.eye", base_dir)
     dyn_table = Section(model.get("dynamics", dict, {}), "model.dynamics")
     classes = _part_classes()
     parts = {

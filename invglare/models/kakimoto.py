@@ -374,7 +374,7 @@ class KakimotoGlare(AbstractRasterModel):
         obstacle, bilinear at its centre.
         """
         eye, grid = self.aperture, self.propagator.grid
-        lit = eye.pupil.coverage(grid)
+        lit = eye.opening(grid)
         lit = lit * eye.obstacle_transmission(grid, self._shift(light_angle_deg, lit.dtype))
         centre = grid.npix // 2
         radii, amps, centres = [], [], []

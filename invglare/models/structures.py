@@ -11,7 +11,8 @@ What an eye or a camera puts on the raster can be finer than that:
   instead of 0.82 deg): **refused** (:class:`~invglare.errors.PhysicsRangeError`), naming
   the raster it needs. Resolved, its first order can still fall outside the output's
   field: a :class:`RasterWarning` says so;
-- a **small** structure (a particle, a lash, a grating's or filter's line) narrower than
+- a **small** structure (a particle, a lash, a grating's or filter's line, a pixel of an
+  obstacle or pupil picture, which is sampled bilinearly) narrower than
   one pitch is drawn as pixel-averaged coverage: its blocked power is right, but its
   diffraction, which spreads to ``lambda / size``, is cut at the raster's band. A
   :class:`RasterWarning` names the raster that would resolve it. (Particles' wide-angle
@@ -54,6 +55,17 @@ def _value(x: Any) -> float | None:
     return float(np.min(arr)) if arr.size else None
 
 
+def _image_pixels(aperture: Any) -> list[tuple[str, bool, Any]]:
+    """An image's pixels: sampled bilinearly, so ones finer than the raster alias."""
+    out = []
+    for name in ("obstacle_image", "pupil_image"):
+        image = getattr(aperture, name, None)
+        if image is not None:
+            cols = image.transmission.shape[1]
+            out.append((f"{name} pixels (width_mm / columns)", False, image.width_mm / cols))
+    return out
+
+
 def structures_of(aperture: Any) -> list[Structure]:
     """The periodic and small structures of an eye or camera aperture (others: none)."""
     # Imported here: the aperture classes are below this tier, but not every aperture is one.
@@ -75,6 +87,7 @@ def structures_of(aperture: Any) -> list[Structure]:
             found.append(
                 (f"{p.region} particles (2 x radius_mean_mm)", False, 2 * p.radius_mean_mm)
             )
+        found += _image_pixels(aperture)
     elif isinstance(aperture, CameraAperture):
         f = aperture.filter
         if f is not None:
@@ -88,6 +101,7 @@ def structures_of(aperture: Any) -> list[Structure]:
             ]
         if aperture.dust is not None:
             found.append(("dust (feature_size_mm)", False, aperture.dust.feature_size_mm))
+        found += _image_pixels(aperture)
     out = []
     for name, periodic, size in found:
         value = _value(size)

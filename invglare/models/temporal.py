@@ -574,10 +574,10 @@ class TemporalGlare(AbstractRasterModel):
         log_t = static.log_static
         for i in self._moving_indices():
             log_t = log_t + eye.particles[i].log_transmission(grid)
-        pupil = eye.pupil.coverage(grid) * jnp.exp(log_t)
-        if eye.lids is None:
+        pupil = eye.opening(grid) * jnp.exp(log_t)
+        if eye.lids is None and eye.obstacle_image is None:
             return pupil
-        if not self.lids_move:
+        if not self.lids_move or eye.lids is None:
             return pupil * static.obstacle
         obstacle = jax.lax.cond(
             values.lid_open_fraction == static.open_fraction,

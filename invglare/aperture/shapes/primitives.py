@@ -559,3 +559,14 @@ class ImageMask(AbstractShape):
         x = cx + math.cos(th) * corners[:, 0] - math.sin(th) * corners[:, 1]
         y = cy + math.sin(th) * corners[:, 0] + math.cos(th) * corners[:, 1]
         return float(np.max(np.hypot(x, y)))
+
+
+def shifted_image_transmission(
+    image: ImageMask, grid: ApertureGrid, shift_mm: Float[ArrayLike, " 2"]
+) -> Float[Array, "n n"]:
+    """An obstacle image's transmission ``1 - coverage``, translated by `shift_mm` = (x, y).
+
+    Clear (1) outside the image; differentiable in the shift and the image's placement.
+    """
+    moved = eqx.tree_at(lambda m: m.center_mm, image, image.center_mm + jnp.asarray(shift_mm))
+    return 1.0 - moved.coverage(grid)
