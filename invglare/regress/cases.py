@@ -327,6 +327,66 @@ CASES: tuple[Case, ...] = (
         },
         tolerance=FRESNEL_TOLERANCE,
     ),
+    Case(
+        "temporal_retina",
+        "temporal eye with the paper's defaults: eq. 3's E at the eye's 17 mm (alias-free, "
+        "the pupil's Fresnel shadow on the retina), brightness = K (transmitted power), "
+        "lids and lens particles, 4 scaled copies 450-650 nm",
+        {
+            "model": {
+                "kind": "temporal",
+                "aperture_npix": 64,
+                "seed": 3,
+                "field_luminance_cd_m2": 1.0,
+                "eye": {
+                    "seed": 5,
+                    "pupil": {"diameter_mm": 5.0},
+                    "lids": _LIDS,
+                    "particles": [
+                        {
+                            "region": "lens_nucleus",
+                            "count": 30.0,
+                            "n_max": 30,
+                            "radius_mean_mm": 0.1,
+                        },
+                    ],
+                },
+            },
+            "output": {"npix": 128},
+            "spectrum": {"wavelengths_nm": "450:650:4"},
+        },
+        tolerance=FRESNEL_TOLERANCE,
+    ),
+    Case(
+        "eye_wide_angle",
+        "Kakimoto eye with cornea cells on a +-0.26 deg field, beyond the 32-px raster's "
+        "+-0.16 deg band: the raster inside it, the cells' Babinet scatter (ensemble) beyond, "
+        "550 nm",
+        {
+            "model": {
+                "kind": "eye",
+                "focal_length_mm": 17.0,
+                "obstacle_distance_mm": 8.0,
+                "aperture_npix": 32,
+                "window_mm": 3.2,
+                "eye": {
+                    "seed": 2,
+                    "pupil": {"diameter_mm": 3.0},
+                    "particles": [
+                        {
+                            "region": "cornea",
+                            "count": 60.0,
+                            "n_max": 60,
+                            "radius_mean_mm": 0.0075,
+                            "region_radius_mm": 2.0,
+                        }
+                    ],
+                },
+            },
+            "output": {"npix": 128, "pixel_scale_deg": 0.004},
+            "spectrum": {"wavelengths_nm": 550.0},
+        },
+    ),
 )
 
 
