@@ -8,8 +8,9 @@ own direction), add the result to the image and tone-map it for display
 (`tonemap` and `TONEMAPS`); or, as Kakimoto et al. composite, tone-map each glare into a
 billboard and blend it onto the low-dynamic-range picture (`composite`). `scenes` provides
 small procedural HDR scenes in cd/m^2 so that all of this runs with nothing downloaded.
-`temporal_frames` renders the temporal glare model's animations (`render_frame`, `render_sequence`: a per-frame PSF
-convolved with an HDR frame and tone-mapped, one `lax.scan` per sequence).
+`temporal_frames` renders the temporal glare model's animations (`render_frame`,
+`render_sequence`: a per-frame PSF convolved with an HDR frame and tone-mapped, one
+`lax.scan` per sequence).
 """
 
 from invglare.render.billboard import add_billboards as add_billboards
