@@ -34,6 +34,19 @@ the aperture's ``obstacle_transmission``. (In the paper's eq. 3 the pupil is
 centred at ``-(d_o / f) x_f`` on the obstacle plane; with the image point
 ``x_f = -f tan(a)`` this is the same statement.)
 
+**What follows the paper and what departs.** Eq. 5 (fixed mask) and eq. 3 (the mask
+scrolled with the light, evaluated per light as the paper's implementation does) are the
+paper's, as are the RGB wavelengths 680 / 530 / 460 nm (``colour="paper_rgb"``) and any
+picture as the obstacle or pupil (`obstacle_image`, `pupil_image` of the eye and camera
+apertures, a distance `obstacle_distance_mm` in front of the pupil). Departures, each
+named: PSFs are normalised to unit energy instead of the paper's ``A^2 / (lambda f)^2``
+(the observation model of a fit carries the flux); ``colour="spectral"`` integrates a
+spectrum instead of three lines; structures the raster cannot resolve are refused or
+warned of (:mod:`invglare.models.structures`); and the eye's particles, which the paper's
+eyelash model does not have (Ritschel et al. add them), scatter beyond the raster's band
+in closed form (``wide_angle``). The paper's display pipeline (sigmoid, billboards) is
+the render tier's: :mod:`invglare.render.composite`.
+
 **Apertures.** Any equinox Module with these methods works (see
 :class:`ObstacleAperture`), e.g. :class:`invglare.aperture.camera.CameraAperture`
 and the eye aperture:
