@@ -61,10 +61,20 @@ _MAX_N = 1024
 
 
 def _model(n: int):
+    import dataclasses
+
     from invglare.aperture.eye import night_eye
     from invglare.models.temporal import TemporalGlare
 
-    return TemporalGlare.build(night_eye(0), npix=n)
+    eye = night_eye(0)
+    # The preset's 40 um gratings need a pitch <= 20 um, finer than any N/2 raster here has
+    # (the model refuses a grating its raster aliases): they keep their count and lines,
+    # at the finest spacing the raster resolves (what a frame costs does not depend on it).
+    probe = TemporalGlare.build(dataclasses.replace(eye, gratings=None), npix=n)
+    pitch = float(probe.propagator.grid.pitch_mm)
+    spacing = max(float(eye.gratings.spacing_mm), 2.5 * pitch)
+    gratings = dataclasses.replace(eye.gratings, spacing_mm=spacing)
+    return TemporalGlare.build(dataclasses.replace(eye, gratings=gratings), npix=n)
 
 
 def _psf_case(n: int):

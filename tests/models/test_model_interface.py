@@ -151,6 +151,9 @@ KINDS = {
                 "kind": "veiling",
                 "profile": "hat",
                 "n_harmonics": 16,
+                # The raw series: the positivity floor's kink, where a ringing pixel sits
+                # within a difference step of 0, stops central differences converging.
+                "positivity": "none",
                 "ghosts": {
                     "position_deg": [[0.0, 0.0], [0.5, 0.0]],
                     "radius_deg": [1.5, 3.0],
