@@ -55,6 +55,12 @@ dims as the pupil constricts and goes dark in a blink; set the tone map's exposu
 it. ``"unit"``: unit energy per wavelength, as every static model (a departure, for
 comparing shapes).
 
+**Field.** The PSF covers the raster's band (the FFT's field, or the image-plane window
+of ``"retina"``): the particles' diffraction beyond it, several degrees for cornea cells,
+is not added here (a :class:`~invglare.errors.RasterWarning` names the raster that would
+carry it); the eye kind adds it in closed form (``wide_angle``,
+:mod:`invglare.optics.particles`).
+
 **Spectrum.** The scaled copies (``spectral = "scaled"``) each keep the reference PSF's
 energy (``copy_weighting = "energy"``, the default: what per-wavelength PSFs of a fixed
 aperture do). The paper's printed sum is a plain look-up ``F_575(x 575 / lambda)``, whose
