@@ -39,7 +39,8 @@ with the row index (the grids' convention, :mod:`invglare._core.grids`), so +y i
 with row 0 at the bottom and *down* a frame shown with row 0 at the top, as image files
 are (and as :func:`invglare.render.light_angles_deg` reads a frame's lights); ``None``
 means the model's own default direction (on axis, or the direction leaf a fit adjusts).
-**State**: animated models take the frame's state as the keyword `state` (``None``: at rest); static models accept only ``state=None``.
+**State**: animated models take the frame's state as the keyword `state` (``None``: at
+rest); static models accept only ``state=None``.
 
 Adding a model is its file here plus one registration in :mod:`invglare.config.kinds`
 (see ``CONTRIBUTING.md``).
