@@ -132,7 +132,13 @@ def render(
         ),
     ] = Path("glare.png"),
     mode: Annotated[
-        str, typer.Option(help="convolve (whole frame) or billboard (bright pixels only).")
+        str,
+        typer.Option(
+            help="convolve (whole frame), billboard (linear PSFs at the bright pixels, then "
+            "--tonemap) or kakimoto (Kakimoto et al.'s compositing: each glare tone-mapped by "
+            "the sigmoid into a billboard, scaled by its pixel, blended onto the scene under "
+            "--tonemap; black stays black)."
+        ),
     ] = "convolve",
     threshold: Annotated[
         float | None,

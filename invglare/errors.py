@@ -49,3 +49,11 @@ def prefixed(where: str) -> Iterator[None]:
         if str(err).startswith(where):
             raise
         raise type(err)(f"{where}: {err}") from None
+
+
+class RasterWarning(UserWarning):
+    """A structure of the aperture that the raster or the output field cannot show in full.
+
+    The model still runs (its blocked power is right); the message names the raster or
+    field that would show it.
+    """

@@ -13,7 +13,7 @@ from invglare.files.outputs import output_file, output_folder
 
 log = logging.getLogger("invglare")
 
-MODES = ("convolve", "billboard")
+MODES = ("convolve", "billboard", "kakimoto")
 OUTPUT_SUFFIXES = (".exr", ".png")
 #: Animation outputs: a video, a GIF, or (no suffix) a folder of linear EXR frames.
 ANIMATION_SUFFIXES = (".mp4", ".gif")
@@ -119,6 +119,11 @@ def run_render(
         _write(out, np.asarray(result), scale, model, "ghosts", scene, tonemap_name, params)
         return
     max_npix = 2 * max(image.shape[:2]) + 1
+    if mode == "kakimoto":
+        run_kakimoto_composite(
+            image, model, out, scale, scene, threshold, max_bright, tonemap_name, exposure
+        )
+        return
     if not model.shift_invariant:
         # Each light gets the PSF of its own direction (Kakimoto eq. 3: the lashes move
         # with the light), which a convolution cannot do.
@@ -186,6 +191,75 @@ def _read_scene(scene: Path):
     if not scene.exists():
         raise InputDataError(f"scene {str(scene)!r} does not exist")
     return read_exr(scene)
+
+
+def run_kakimoto_composite(
+    image,
+    model,
+    out: Path,
+    scale: float,
+    scene: Path,
+    threshold,
+    max_bright,
+    tonemap_name,
+    exposure,
+) -> None:
+    """Kakimoto et al.'s compositing (`invglare.render.composite`): the scene tone-mapped
+    (``--tonemap``, ``--exposure``) with a sigmoid-mapped glare billboard blended on at each
+    bright pixel, scaled by its value; a position-dependent model gives each its own."""
+    import jax
+    import jax.numpy as jnp
+
+    from invglare.render import tonemap
+    from invglare.render.composite import kakimoto_composite
+
+    image = jnp.asarray(image)
+    bright = _bright(image, threshold, max_bright)
+    max_npix = 2 * max(image.shape[:2]) + 1
+    core = model.core_radius_px()
+    radius = 0.0 if core is None else core * float(model.pixel_scale_deg) / scale
+    if model.shift_invariant:
+        psf, index = psf_at_scale(model, scale, max_npix=max_npix), None
+    else:
+        from invglare.render.bright import light_angles_deg
+        from invglare.render.position_glare import position_psf_bank, psf_npix_at_scale
+
+        angles = light_angles_deg(bright, image.shape[:2], scale)
+        own_npix = jax.eval_shape(lambda m: m(), model).shape[0]
+        npix = psf_npix_at_scale(own_npix, float(model.pixel_scale_deg), scale, max_npix)
+        psf = position_psf_bank(model, angles, scale, npix)
+        index = jnp.arange(angles.shape[0])
+    if image.ndim == 2 and psf.ndim == (3 if index is None else 4):
+        raise InputDataError(f"{scene} is monochrome (Y) but the model's PSF is RGB")
+    params = {"exposure": exposure} if tonemap_name in ("gamma", "srgb") else {}
+    if tonemap_name == "kakimoto":
+        raise ConfigError(
+            "--mode kakimoto tone-maps each glare billboard by the sigmoid itself; choose the "
+            "scene's tone map with --tonemap reinhard, gamma or srgb"
+        )
+    ldr = tonemap(image, tonemap_name, **params)
+    result = kakimoto_composite(ldr, bright, psf, radius, psf_index=index)
+    _write_display(out, np.asarray(result), scale, model, scene)
+    log.info(
+        "kakimoto compositing: %d billboards, spot radius %.3g px", int(bright.valid.sum()), radius
+    )
+
+
+def _write_display(out: Path, result, scale: float, model, scene: Path) -> None:
+    """Display values (already composited): a PNG as they are, an EXR holding them."""
+    from invglare.files.exr import write_exr
+    from invglare.files.images import write_png
+
+    if out.suffix.lower() == ".exr":
+        write_exr(
+            out,
+            result,
+            pixel_scale_deg=scale,
+            config=model.to_config(),
+            attrs={"renderMode": "kakimoto", "scene": str(scene), "values": "display [0, 1]"},
+        )
+    else:
+        write_png(out, result)
 
 
 def _tonemap_params(

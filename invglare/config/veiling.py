@@ -46,6 +46,7 @@ lens parameters survive the round trip.
     source = "where the numbers come from"
     stated_effective_focal_length_mm = 101.181   # optional, for checks
     stated_back_focal_length_mm = 77.405         # optional
+    stated_f_number = 3.5                        # optional
     reflectance = 0.01        # coating of every glass-air surface (default 0)
     sensor_reflectance = 0.02 # default 0 (no sensor ghosts)
     object_index = 1.0
@@ -110,6 +111,7 @@ class LensFile:
     stated_effective_focal_length_mm: float | None
     stated_back_focal_length_mm: float | None
     path: Path | None = None
+    stated_f_number: float | None = None
 
 
 def bundled_lenses() -> tuple[str, ...]:
@@ -132,6 +134,7 @@ def lens_from_table(table: dict[str, Any], where: str = "lens") -> LensFile:
     source = t.get("source", (str,), "")
     efl = t.get("stated_effective_focal_length_mm", (float,), None)
     bfl = t.get("stated_back_focal_length_mm", (float,), None)
+    f_number = t.get("stated_f_number", (float,), None)
     coating = t.get("reflectance", (float,), 0.0)
     sensor = t.get("sensor_reflectance", (float,), 0.0)
     object_index = t.get("object_index", (float,), 1.0)
@@ -185,7 +188,7 @@ def lens_from_table(table: dict[str, Any], where: str = "lens") -> LensFile:
             object_index=lens.object_index,
             name=lens.name,
         )
-    return LensFile(lens, name, source, efl, bfl)
+    return LensFile(lens, name, source, efl, bfl, stated_f_number=f_number)
 
 
 def _lens_path(name_or_path: str | Path, base_dir: str | Path | None) -> Path:
@@ -223,6 +226,7 @@ def load_lens_file(name_or_path: str | Path, base_dir: str | Path | None = None)
         info.stated_effective_focal_length_mm,
         info.stated_back_focal_length_mm,
         path,
+        info.stated_f_number,
     )
 
 
