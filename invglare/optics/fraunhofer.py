@@ -65,8 +65,11 @@ def transmitted_power(field: Inexact[Array, "n n"], pitch_mm: ArrayLike) -> Floa
     return open_area_px(field) * jnp.asarray(pitch_mm) ** 2
 
 
-def _power_px(field, open_area_mm2, pitch_mm) -> Float[Array, ""]:
-    """``P / d^2``: a closed-form area when given, else the raster's transmission; never 0."""
+def power_px(
+    field: Inexact[Array, "n n"], open_area_mm2: ArrayLike | None, pitch_mm: ArrayLike
+) -> Float[Array, ""]:
+    """``P / d^2``, a PSF's divisor: a closed-form area when given, else the raster's
+    transmission; never 0."""
     if open_area_mm2 is None:
         power = open_area_px(field)
     else:
@@ -110,7 +113,7 @@ def intensity_fft(
         raise ValueError(f"out_npix ({out_npix}) must not exceed fft_npix ({fft_npix})")
     if fft_npix > n:
         field = materialise(field)
-    norm = _power_px(field, open_area_px, 1.0) * fft_npix**2
+    norm = power_px(field, open_area_px, 1.0) * fft_npix**2
     if fft_npix % 2 == 0:
         real_dtype = jnp.real(field).dtype
         modulated = field * _checkerboard(n, real_dtype)
@@ -169,7 +172,7 @@ def fraunhofer_mft(
         intensity = _real_field_intensity(
             field, grid.coords_mm(), output.pixel_scale_rad / lam_mm, output.npix
         )
-    power = _power_px(field, open_area_mm2, grid.pitch_mm)
+    power = power_px(field, open_area_mm2, grid.pitch_mm)
     # |pitch^2 * DFT|^2 * (dtheta / lambda)^2 / (power * pitch^2)
     scale = (grid.pitch_mm * output.pixel_scale_rad / lam_mm) ** 2
     return intensity * (scale / power)
