@@ -1,12 +1,28 @@
-"""Shared test utilities: float64 context and finite-difference gradient checks."""
+"""Shared test utilities: float64 context, finite-difference gradient checks, a toy PSF."""
 
 from __future__ import annotations
 
 from collections.abc import Callable
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jaxtyping import Array, Float
+
+
+class GaussPSF(eqx.Module):
+    """A unit-energy Gaussian PSF on an `npix` grid: a cheap model for fitting tests."""
+
+    sigma_px: Float[Array, ""] = eqx.field(converter=jnp.asarray)
+    npix: int = eqx.field(static=True, default=32)
+    unused: Float[Array, ""] = eqx.field(converter=jnp.asarray, default=0.0)  # no effect
+
+    def __call__(self):
+        c = self.npix // 2
+        x = jnp.arange(self.npix, dtype=self.sigma_px.dtype) - c
+        g = jnp.exp(-(x[None, :] ** 2 + x[:, None] ** 2) / (2 * self.sigma_px**2))
+        return g / jnp.sum(g)
 
 
 def x64():

@@ -317,7 +317,7 @@ def run_fit_benchmark(
         res, stamps = run_lm()
         fn = make_residual_fn(space, template, target, {"pixels": 1.0})
         z_best = space.to_latent(jnp.asarray([res.values[p] for p in space.paths]))
-        # The covariance step of `fit` compiled this; timing it now costs no compilation.
+        # The LM's Jacobian at the optimum (`measure` compiles it on its first call, untimed).
         jac = measure(lambda: _jacobian_and_residuals(fn, z_best), 5, budget_s=5.0)
         lm = {
             "compile_s": first.timing_s["compile"],

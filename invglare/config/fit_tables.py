@@ -336,9 +336,11 @@ def read_solver(table: Any) -> tuple[dict[str, Any], int, int]:
         "refine_top": sec.get("refine_top", int, 1),
         "batch": sec.choice("batch", BATCH_MODES, "vmap"),
     }
-    scale = sec.get("covariance_scale", (str, float), "chi2")
-    if isinstance(scale, str) and scale not in ("chi2", "absolute"):
-        raise ConfigError(f"solver.covariance_scale = {scale!r} is not chi2, absolute or a number")
+    scale = sec.get("covariance_scale", (str, float), "auto")
+    if isinstance(scale, str) and scale not in ("auto", "chi2", "absolute"):
+        raise ConfigError(
+            f"solver.covariance_scale = {scale!r} is not auto, chi2, absolute or a number"
+        )
     solver["covariance_scale"] = scale
     n_starts = sec.get("n_starts", int, 3)
     seed = sec.get("seed", int, 0)

@@ -11,6 +11,8 @@ result = fit(space, Forward(model, Observation.from_target(photo)), photo, {"pix
 ```
 """
 
+from invglare.fit.deviance import deviance_residuals as deviance_residuals
+from invglare.fit.deviance import likelihood_peak as likelihood_peak
 from invglare.fit.observation import Forward as Forward
 from invglare.fit.observation import Observation as Observation
 from invglare.fit.observation import check_target as check_target
@@ -24,6 +26,8 @@ from invglare.fit.params import Prior as Prior
 from invglare.fit.params import parse_path as parse_path
 from invglare.fit.params import resolve_path as resolve_path
 from invglare.fit.params import valid_paths as valid_paths
+from invglare.fit.photos import PhotoFits as PhotoFits
+from invglare.fit.photos import fit_photos as fit_photos
 from invglare.fit.result import FitResult as FitResult
 from invglare.fit.solve import FitProgress as FitProgress
 from invglare.fit.solve import fit as fit

@@ -10,7 +10,8 @@ Contents of ``reports/NAME/``:
 
 | file           | what                                                                  |
 |----------------|-----------------------------------------------------------------------|
-| `report.md`    | parameter table (value ± stderr, truth, error, units), convergence,   |
+| `report.md`    | the flags first (when to distrust the fit), the objective maximised, |
+|                | parameter table (value ± stderr, truth, error, units), convergence,   |
 |                | reduced chi², timing (compile vs solve), the starts, discrete choices |
 | `params.json`  | :meth:`invglare.fit.FitResult.to_dict` plus ``"fit"`` (inputs, wall  |
 |                | time) and ``"discrete"`` (static choices and their losses)            |
@@ -28,22 +29,18 @@ write_report("reports/eye_daylight", result, info)
 
 from __future__ import annotations
 
-import contextlib
 import dataclasses
 import math
 import os
 import re
-import shutil
-import tempfile
-import uuid
-from collections.abc import Iterator, Sequence
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 from jaxtyping import Float
 
-from invglare.files.atomic import dumps_json
+from invglare.files.atomic import atomic_directory, dumps_json
 from invglare.fit.result import FitResult, _clean
 
 _UNITS = (
@@ -107,48 +104,6 @@ class ReportInfo:
     discrete_truth: dict[str, int | None] = dataclasses.field(default_factory=dict)
     view_options: dict[str, dict[str, Any]] = dataclasses.field(default_factory=dict)
     sections: dict[str, tuple[str, list[str], Any]] = dataclasses.field(default_factory=dict)
-
-
-# --------------------------------------------------------------------------------------
-# atomic folder
-
-
-@contextlib.contextmanager
-def atomic_directory(path: str | os.PathLike[str], keep: Sequence[str] = ()) -> Iterator[Path]:
-    """Yield a temporary folder to fill; it replaces `path` as a whole on success.
-
-    The temporary folder is a hidden sibling of `path` (same filesystem, so the
-    renames are atomic). On any exception, ``KeyboardInterrupt`` included, it is
-    removed and an existing `path` is left as it was. Entries of the old `path` named
-    in `keep` (and not written anew) move into the new one: a refit keeps the
-    posterior chain of ``invglare sample``, which may have taken hours.
-    """
-    target = Path(path)
-    target.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{target.name}.", suffix=".tmp", dir=target.parent))
-    umask = os.umask(0)
-    os.umask(umask)
-    tmp.chmod(0o777 & ~umask)  # mkdtemp makes it private; a report folder is an ordinary one
-    try:
-        yield tmp
-        if target.exists():
-            old = target.parent / f".{target.name}.{uuid.uuid4().hex[:12]}.old"
-            os.replace(target, old)
-            try:
-                os.replace(tmp, target)
-            except BaseException:
-                os.replace(old, target)
-                raise
-            for name in keep:
-                # An interruption here leaves the entry in the hidden .old folder, not lost.
-                if (old / name).exists() and not (target / name).exists():
-                    os.replace(old / name, target / name)
-            shutil.rmtree(old, ignore_errors=True)
-        else:
-            os.replace(tmp, target)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
 
 
 # --------------------------------------------------------------------------------------
@@ -351,11 +306,36 @@ def _stage_views(result: FitResult) -> str:
     )
 
 
+def flag_lines(result: FitResult) -> list[str]:
+    """The report's opening block: the flags of :mod:`invglare.fit.trust`, or that none were
+    raised (and what was checked)."""
+    check = result.optimum_check
+    if result.flags:
+        lines = [f"> **{len(result.flags)} flag{'s' if len(result.flags) > 1 else ''} — "
+                 "when to distrust this fit:**", ">"]  # fmt: skip
+        lines += [f"> - **{f['kind']}**: {f['message']}" for f in result.flags]
+        return [*lines, ""]
+    if check is None and not result.objective:
+        return []  # a result from before flags existed: nothing was checked
+    checked = [f"reduced χ² {_fmt(result.reduced_chi2, 4)}"]
+    if check is not None:
+        checked.insert(
+            0,
+            f"at the likelihood's optimum ({check['steps']} scoring steps gain "
+            f"{_fmt(check['gain'], 2)} in log-likelihood; gradient "
+            f"{_fmt(check['decrement'], 2)} standard errors)",
+        )
+    if result.truth:
+        checked.append("every known truth within 3 standard errors")
+    checked.append("no value at a bound")
+    return [f"> **No flags:** {'; '.join(checked)}.", ""]
+
+
 def render_markdown(result: FitResult, info: ReportInfo, figures: Sequence[str]) -> str:
     """The text of ``report.md``."""
     t = np.asarray(info.target)
     h, w = t.shape
-    lines = [f"# Fit report: {info.name}", ""]
+    lines = [f"# Fit report: {info.name}", "", *flag_lines(result)]
     clipped = ""
     if info.saturation is not None:
         n_sat = int(np.sum(t >= info.saturation * (1 - 1e-4)))
@@ -368,6 +348,7 @@ def render_markdown(result: FitResult, info: ReportInfo, figures: Sequence[str])
         f"- **Ground truth:** `{_rel(info.truth_path)}`" if info.truth_path else
         "- **Ground truth:** unknown (a real photo)",
         f"- **Views:** {_stage_views(result)}",
+        *([f"- **Maximised:** {result.objective}"] if result.objective else []),
         f"- **Solver:** {result.solver}, {info.n_starts} starts, coarse-to-fine "
         f"{list(info.solver.get('coarse_to_fine', (1,)))}, max_steps "
         f"{info.solver.get('max_steps', '—')}",

@@ -12,11 +12,26 @@ The JSON layout (``params.json`` of a fit report) is
   "converged": true, "message": "converged ...", "n_steps": 23, "best_start": 1,
   "timing_s": {"compile": 4.1, "solve": 0.8, "total": 5.3},
   "solver": "lm", "views": {"pixels": 1.0},
+  "objective": "the Poisson–Gaussian likelihood of the pixels (deviance residuals, ...)",
+  "flags": [{"kind": "truth_beyond_3se", "path": "obs.background", "z": -6.9,
+             "message": "obs.background: the truth 20 is -6.9 standard errors from ..."}],
+  "optimum_check": {"gain": 0.002, "decrement": 0.05, "steps": 1},
   "stages": [{"factor": 4, "n_steps": [...], "final_loss": [...], "converged": [...],
               "messages": [...], "loss_history": [[...], ...], "compile_s": 2.0, "solve_s": 0.3}],
   "starts": [{"path": value, ...}, ...]
 }
 ```
+
+``"flags"`` says when to distrust the result (:mod:`invglare.fit.trust`): each flag has
+a ``"kind"`` — ``"not_at_optimum"`` (a few scoring steps of the exact likelihood from the
+result gain more than d/2, or its gradient is more than 1 standard error long; numbers
+``"gain"``, ``"decrement"``), ``"reduced_chi2"`` (far from 1; ``"value"`` and a likely
+``"cause"``: ``"model_misfit"``, ``"noise_gain"``, ``"noise_read"``,
+``"noise_overestimated"``), ``"truth_beyond_3se"`` (``"path"``, ``"z"``), ``"at_bound"``
+(``"path"``, ``"bound"``), ``"stderr_undefined"`` (``"path"``) — and a ``"message"`` in
+words; an empty list when nothing was found (absent in results written before flags
+existed). ``"optimum_check"`` holds the local check's numbers (``null`` if it did not run)
+and ``"objective"`` what the final fit maximised.
 
 Non-finite numbers (an unconstrained parameter's stderr) are written as ``null``
 and read back as NaN. Residual and model images are kept in memory only.
@@ -84,7 +99,7 @@ class FitResult:
     - `loss`: ``sum(residuals**2)`` at the optimum (full resolution).
     - `reduced_chi2`: ``loss / (n_residuals - p)``.
     - `n_residuals`: residuals that depend on the parameters (masked pixels excluded).
-    - `covariance_scale`: the ``s**2`` multiplying ``(J^T J)^-1``.
+    - `covariance_scale`: the ``s**2`` multiplying the inverse information (``(J^T J)^-1``).
     - `converged`, `message`: the final solve's status, in words.
     - `n_steps`: solver steps along the winning path, all stages.
     - `best_start`: index of the start that won the first stage.
@@ -94,6 +109,11 @@ class FitResult:
     - `stages`: per stage, per start: steps, final loss, status, loss history
       (the loss at each accepted step).
     - `starts`: starting values of the first stage, ``[{path: value}]``.
+    - `objective`: what the final fit maximised, in words (the likelihood, or which views).
+    - `flags`: when to distrust the result, ``[{"kind", "message", ...}]`` (see the
+      module docstring and :mod:`invglare.fit.trust`); empty when none.
+    - `optimum_check`: ``{"gain", "decrement", "steps"}`` of the local check of the
+      likelihood's optimum, or None.
     - `residual_map`, `model_image`: ``(h, w)`` arrays (not saved): the
       noise-normalised residual ``(target - expected) / sigma`` (0 at clipped
       pixels) and the predicted photo.
@@ -118,6 +138,9 @@ class FitResult:
     views: dict[str, float] = dataclasses.field(default_factory=dict)
     stages: list[dict[str, Any]] = dataclasses.field(default_factory=list)
     starts: list[dict[str, float]] = dataclasses.field(default_factory=list)
+    objective: str = ""
+    flags: list[dict[str, Any]] = dataclasses.field(default_factory=list)
+    optimum_check: dict[str, Any] | None = None
     residual_map: np.ndarray | None = dataclasses.field(default=None, compare=False, repr=False)
     model_image: np.ndarray | None = dataclasses.field(default=None, compare=False, repr=False)
 
@@ -135,6 +158,9 @@ class FitResult:
     def summary(self) -> str:
         """A plain-text table: parameter, value ± stderr, truth and error where known."""
         lines = [f"{self.message}", f"loss {self.loss:.6g}, reduced chi2 {self.reduced_chi2:.4g}"]
+        if self.objective:
+            lines.append(f"maximised: {self.objective}")
+        lines += [f"  FLAG {f['kind']}: {f['message']}" for f in self.flags]
         for p in self.paths:
             line = f"  {p}: {self.values[p]:.6g} ± {self.stderr[p]:.3g}"
             if self.truth and p in self.truth:
@@ -171,6 +197,9 @@ class FitResult:
                 "timing_s": dict(self.timing_s),
                 "solver": self.solver,
                 "views": dict(self.views),
+                "objective": self.objective,
+                "flags": list(self.flags),
+                "optimum_check": self.optimum_check,
                 "stages": list(self.stages),
                 "starts": list(self.starts),
             }
@@ -219,6 +248,9 @@ class FitResult:
                 views={k: float(v) for k, v in data.get("views", {}).items()},
                 stages=list(data.get("stages", [])),
                 starts=list(data.get("starts", [])),
+                objective=str(data.get("objective", "")),
+                flags=[dict(f) for f in data.get("flags", [])],
+                optimum_check=data.get("optimum_check"),
             )
         except (KeyError, TypeError, ValueError, AttributeError) as err:
             what = f"missing key {err}" if isinstance(err, KeyError) else str(err)

@@ -21,19 +21,37 @@ resolution in every stage. Blocks must stay smaller than the PSF core: on a
 64-px photo with a 3-px Airy core, 4x4 blocks made the coarse objective *more*
 multimodal (the starts settled in wrong minima) while 2x2 blocks did not.
 
-The covariance comes from the Jacobian ``J = d r / d z`` of the full-resolution
-residuals at the optimum, in latent space, ``s**2 (J^T J)^-1``, mapped to the
-physical values by the (diagonal) derivative of the transforms,
-``C = D C_z D`` with ``D = diag(dx/dz)``. ``s**2`` (`covariance_scale`):
+**One likelihood.** The `pixels` view's residuals are the deviance residuals of the
+photo's Poisson–Gaussian likelihood (:mod:`invglare.fit.deviance`), the one `invglare sample`
+samples: half their sum of squares is ``-log L`` plus a constant of the data, so the final
+fit is the maximum-likelihood fit. A final pixel view in a variance-stabilised domain
+(``"anscombe"``, ``"pearson"``: biased) is solved first and then refined on the likelihood
+from its best result (one more stage record, ``"likelihood": true``); the result's
+`objective` says what was maximised. Such a first pass widens the basin from starts far
+from the optimum: there the Gaussian likelihood punishes a model without light where the
+photo has it by ``(o - e)**2 / V(e)``, far harder than the Anscombe domain's ``~4 g o``, and
+its landscape is rugged (BFGS from 3 starts across a disk's bounds stopped at the lower
+bound on the likelihood alone, at the truth after an Anscombe pass).
 
-- ``"chi2"`` (default): the reduced chi-square ``sum(r**2) / (n - p)``, i.e.
-  errors scaled by the actual scatter of the residuals (as
-  ``scipy.optimize.curve_fit`` does by default). When the residuals are
-  noise-normalised (the ``"pixels"`` view) and the noise model is right this is
-  close to 1; when they are not (log, radial, angular views), it puts the
-  covariance in the residuals' own scale;
+The covariance is the inverse of the *information* at the optimum, in latent space, mapped
+to the physical values by the (diagonal) derivative of the transforms, ``C = D C_z D`` with
+``D = diag(dx/dz)``: for the likelihood the Fisher information ``sum_i w_i grad(mu_i)
+grad(mu_i)^T`` (``w`` the information of a pixel about its mean; a clipped pixel's survival
+term enters by its Gauss–Newton curvature), for any other view its Gauss–Newton term
+``J^T J``. It is multiplied by ``s**2`` (`covariance_scale`):
+
+- ``"auto"`` (default): 1 when the objective is the likelihood alone (the information is
+  the likelihood's), else the reduced chi-square;
+- ``"chi2"``: the reduced chi-square ``sum(r**2) / (n - p)``, i.e. errors scaled by the
+  actual scatter of the residuals (as ``scipy.optimize.curve_fit`` does by default): for
+  views that are not noise-normalised (log, radial, angular) it puts the covariance in the
+  residuals' own scale;
 - ``"absolute"``: 1, trusting the noise model (noise-normalised residuals only);
 - a number: that value.
+
+**Flags.** A result carries the flags of :mod:`invglare.fit.trust` (a truth beyond 3
+standard errors, a value at a bound, a reduced chi-square far from 1 with a likely cause, a
+result not at the likelihood's optimum by a short local check of the exact likelihood).
 """
 
 from __future__ import annotations
@@ -57,9 +75,14 @@ from invglare.errors import ConfigError
 from invglare.fit.observation import Forward
 from invglare.fit.params import ParameterSpace
 from invglare.fit.result import FitResult
+from invglare.fit.trust import fit_flags, optimum_check
 from invglare.fit.views import PixelView, ResidualFn, make_residual_fn
 
 SOLVERS = ("lm", "bfgs")
+COVARIANCE_SCALES = ("auto", "chi2", "absolute")
+#: Leaves of the noise model the likelihood's deviance residuals cannot fit (their
+#: saturated-model term depends on them; see :mod:`invglare.fit.deviance`).
+NOISE_PATHS = ("obs.gain", "obs.read_noise")
 BATCH_MODES = ("vmap", "loop")
 
 # Status codes returned from inside the jitted solve (an optimistix RESULTS item can
@@ -377,19 +400,24 @@ def _jacobian_and_residuals(fn: ResidualFn, latent: Array) -> tuple[Array, Array
 
 
 @eqx.filter_jit
-def _predict(fn: ResidualFn, latent: Array) -> tuple[Array, Array, Array]:
-    fwd = fn.forward_at(latent)
-    expected, predicted = fwd.predict()
-    return expected, predicted, fwd.obs.variance(expected)
+def _information(fn: ResidualFn, latent: Array) -> tuple[Array, Array]:
+    # The scoring form's Jacobian and values: J^T J the information, J^T r the gradient.
+    return jacobian_columns(fn.information_form(), latent)
+
+
+@eqx.filter_jit
+def _predict(fn: ResidualFn, latent: Array) -> tuple[Array, Array, Array, Array]:
+    residuals, ctx = fn.evaluate(latent)
+    return ctx.expected, ctx.predicted, ctx.obs.variance(ctx.expected), residuals
 
 
 def _covariance(
     fn: ResidualFn, latent: Array, space: ParameterSpace, scale: str | float
 ) -> tuple[np.ndarray, np.ndarray, float, int, float, str]:
     """Physical covariance, stderr, loss, effective residual count, s**2 and a note."""
-    jac, r = _jacobian_and_residuals(fn, latent)
+    jac, _ = _information(fn, latent)
     jac = np.asarray(jac, dtype=np.float64)
-    r = np.asarray(r, dtype=np.float64)
+    r = np.asarray(_predict(fn, latent)[3], dtype=np.float64)
     loss = float(r @ r)
     p = space.size
     # Masked pixels give residuals that are 0 whatever the parameters: not data.
@@ -397,12 +425,16 @@ def _covariance(
     n = int(active.sum())
     dof = n - p
     if isinstance(scale, str):
-        if scale == "chi2":
+        if scale == "auto" and fn.pure_likelihood:
+            s2 = 1.0
+        elif scale in ("chi2", "auto"):
             s2 = loss / dof if dof > 0 else math.nan
         elif scale == "absolute":
             s2 = 1.0
         else:
-            raise ConfigError(f"covariance_scale {scale!r} is not 'chi2', 'absolute' or a number")
+            raise ConfigError(
+                f"covariance_scale {scale!r} is not 'auto', 'chi2', 'absolute' or a number"
+            )
     else:
         s2 = float(scale)
     # A parameter whose Jacobian column is 0 is not constrained at all: its variance is
@@ -470,12 +502,13 @@ def fit(
     coarse_to_fine: Sequence[int] = (1,),
     refine_top: int = 1,
     view_options: Mapping[str, Mapping[str, Any]] | None = None,
-    covariance_scale: str | float = "chi2",
+    covariance_scale: str | float = "auto",
     truth: Mapping[str, float] | None = None,
     batch: str = "vmap",
     progress: Callable[[FitProgress], None] | None = None,
     record_history: bool = True,
     diagnostics: bool = True,
+    final_likelihood: bool = True,
 ) -> FitResult:
     """Fit the free parameters of `space` to a target photo.
 
@@ -484,8 +517,9 @@ def fit(
     - `space`: free parameters and nuisances (paths into `forward_template`).
     - `forward_template`: ``Forward(model, obs)`` holding every fixed value.
     - `target`: the photo, linear counts, shape of the model's output.
-    - `views`: ``{name: weight}`` (default ``{"pixels": 1.0}``), see
-      :mod:`invglare.fit.views`; `view_options` sets their options.
+    - `views`: ``{name: weight}`` (default ``{"pixels": 1.0}``: the photo's
+      Poisson–Gaussian likelihood), see :mod:`invglare.fit.views`; `view_options` sets
+      their options.
     - `solver`: ``"lm"`` (Levenberg–Marquardt on residuals) or ``"bfgs"`` (BFGS on
       ``sum(r**2) / 2``).
     - `n_starts`, `key`: starts drawn across the bounds by
@@ -498,15 +532,20 @@ def fit(
       the core and make the objective *more* multimodal, not less.
     - `refine_top`: how many of a stage's best starts the next stage refines (1:
       only the best).
-    - `covariance_scale`: ``"chi2"``, ``"absolute"`` or a number (module docstring).
+    - `covariance_scale`: ``"auto"``, ``"chi2"``, ``"absolute"`` or a number (module
+      docstring).
     - `truth`: ``{path: value}`` stored in the result, for synthetic targets.
     - `batch`: ``"vmap"`` (all starts in one call) or ``"loop"`` (one call each).
     - `progress`: called with a :class:`FitProgress` whenever a start accepts a
       step (from JAX's host callback, while the solve runs).
     - `record_history`: collect the loss history (host callbacks; a little slower).
-    - `diagnostics`: compute the covariance (a Jacobian at the optimum) and the model and
-      residual images. ``False`` skips them (stderr and covariance NaN, images None),
-      which saves compiling two more programs when the result only seeds a later fit.
+    - `diagnostics`: compute the covariance (the information at the optimum), the model
+      and residual images, the flags and the optimum check. ``False`` skips them (stderr
+      and covariance NaN, images None, no flags), which saves compiling more programs
+      when the result only seeds a later fit.
+    - `final_likelihood`: end on the likelihood: a pixel view in a variance-stabilised
+      domain is refined on the likelihood from its best result (False: a seed stage,
+      which may stay in that domain).
 
     Fitting in float64 (``jax.enable_x64``) is recommended: the tolerances above
     are near float32's resolution.
@@ -540,9 +579,10 @@ def fit(
         raise ConfigError(f"max_steps must be an integer >= 1, got {max_steps!r}")
     if not (rtol >= 0 and atol >= 0 and rtol + atol > 0):
         raise ConfigError(f"rtol and atol must be >= 0 and not both 0, got {rtol!r}, {atol!r}")
-    if isinstance(covariance_scale, str) and covariance_scale not in ("chi2", "absolute"):
+    if isinstance(covariance_scale, str) and covariance_scale not in COVARIANCE_SCALES:
         raise ConfigError(
-            f"covariance_scale {covariance_scale!r} is not 'chi2', 'absolute' or a number"
+            f"covariance_scale {covariance_scale!r} is not one of "
+            f"{', '.join(COVARIANCE_SCALES)} or a number"
         )
     views = {"pixels": 1.0} if views is None else views
     if truth is not None:
@@ -552,17 +592,32 @@ def fit(
 
     t_start = time.perf_counter()
     fn_full = make_residual_fn(space, forward_template, target, views, view_options=view_options)
+    first_pass = fn_full.stabilised_views() if final_likelihood else ()
+    fn_final = fn_full.with_likelihood() if first_pass else fn_full
+    if final_likelihood and _has_likelihood(fn_final):
+        noise = [p for p in space.paths if p in NOISE_PATHS]
+        if noise:
+            raise ConfigError(
+                f"{', '.join(noise)} cannot be fitted by the pixel likelihood's least squares "
+                "(its deviance residuals' constant depends on them): measure gain and read "
+                "noise from flat and dark frames and fix them, or sample them with `invglare "
+                "sample`, whose posterior is the likelihood itself"
+            )
     y0s = _latent_starts(space, starts, n_starts, key)
     first_starts = [space.as_dict(v) for v in np.asarray(space.from_latent(y0s))]
 
+    # (factor, residuals) of each stage; a first pass in a stabilised domain ends on the
+    # likelihood, from the best result, at full resolution.
+    plan = [(int(f), fn_full if f == 1 else fn_full.with_factor(int(f))) for f in factors]
+    if first_pass:
+        plan.append((1, fn_final))
     stages: list[dict[str, Any]] = []
     compile_s = solve_s = 0.0
     stage_y0 = y0s
     origin = np.arange(y0s.shape[0])  # first-stage start each current start descends from
     steps_so_far = np.zeros(y0s.shape[0], dtype=int)
-    for s, factor in enumerate(factors):
-        fn = fn_full if factor == 1 else fn_full.with_factor(int(factor))
-        history = _History(s, len(factors), int(factor), stage_y0.shape[0], progress)
+    for s, (factor, fn) in enumerate(plan):
+        history = _History(s, len(plan), factor, stage_y0.shape[0], progress)
         cfg = _Config(solver, float(rtol), float(atol), int(max_steps), bool(record_history))
         sink = history if record_history else None
         values, losses, codes, steps, t_c, t_s = _run_stage(fn, stage_y0, cfg, batch, sink)
@@ -574,27 +629,30 @@ def fit(
             for c, n, lo in zip(codes, steps, losses, strict=True)
         ]
         order = np.argsort(losses, kind="stable")
-        stages.append(
-            {
-                "factor": int(factor),
-                "origin": [int(o) for o in origin],
-                "n_steps": [int(n) for n in steps],
-                "final_loss": [float(v) for v in losses],
-                "converged": [c for c, _ in statuses],
-                "messages": [m for _, m in statuses],
-                "loss_history": [
-                    history.history(i, losses[i]) if record_history else [float(losses[i])]
-                    for i in range(stage_y0.shape[0])
-                ],
-                "best": int(order[0]),
-                "compile_s": t_c,
-                "solve_s": t_s,
-            }
-        )
+        record = {
+            "factor": factor,
+            "origin": [int(o) for o in origin],
+            "n_steps": [int(n) for n in steps],
+            "final_loss": [float(v) for v in losses],
+            "converged": [c for c, _ in statuses],
+            "messages": [m for _, m in statuses],
+            "loss_history": [
+                history.history(i, losses[i]) if record_history else [float(losses[i])]
+                for i in range(stage_y0.shape[0])
+            ],
+            "best": int(order[0]),
+            "compile_s": t_c,
+            "solve_s": t_s,
+        }
+        if first_pass:
+            record["likelihood"] = fn is fn_final
+        stages.append(record)
         steps_so_far = steps_so_far + steps.astype(int)
-        if s + 1 < len(factors):
-            # The next, finer stage starts from the best few of this one.
-            keep = order[: max(1, min(int(refine_top), len(order)))]
+        if s + 1 < len(plan):
+            # The next, finer stage starts from the best few of this one; the likelihood's
+            # refinement after a first pass from the best one.
+            top = 1 if plan[s + 1][1] is fn_final and first_pass else int(refine_top)
+            keep = order[: max(1, min(top, len(order)))]
             stage_y0 = jnp.asarray(values[keep])
             origin, steps_so_far = origin[keep], steps_so_far[keep]
     k = int(order[0])
@@ -604,38 +662,60 @@ def fit(
     converged, message = statuses[k]
 
     values = space.as_dict(space.from_latent(best_latent))
+    objective = fn_final.objective()
+    if first_pass:
+        domains = sorted({v.domain for v in fn_full.views if isinstance(v, PixelView)} - {
+            "likelihood", "log"})  # fmt: skip
+        objective += f", refined from a first pass in the {'/'.join(domains)} domain"
+    p = space.size
+    flags: list[dict[str, Any]] = []
+    optimum = None
     if diagnostics:
         cov, stderr, loss, n_res, s2, note = _covariance(
-            fn_full, best_latent, space, covariance_scale
+            fn_final, best_latent, space, covariance_scale
         )
-        expected, predicted, variance = (np.asarray(a) for a in _predict(fn_full, best_latent))
-        target_arr = np.asarray(fn_full.target)
+        expected, predicted, variance, _ = (
+            np.asarray(a) for a in _predict(fn_final, best_latent)
+        )  # fmt: skip
+        target_arr = np.asarray(fn_final.target)
         sigma = np.sqrt(variance + 1e-30)
-        residual_map = np.where(np.asarray(fn_full.saturated), 0.0, (target_arr - expected) / sigma)
+        saturated = np.asarray(fn_final.saturated)
+        residual_map = np.where(saturated, 0.0, (target_arr - expected) / sigma)
+        optimum = _check_optimum(fn_final, best_latent, space)
+        reduced = loss / (n_res - p) if n_res > p else math.nan
+        obs = fn_final.forward.obs
+        flags = fit_flags(
+            paths=list(space.paths),
+            values=values,
+            stderr={path: float(e) for path, e in zip(space.paths, stderr, strict=True)},
+            bounds={q.path: (q.lower, q.upper, q.init) for q in space.all},
+            truth=truth,
+            reduced_chi2=reduced,
+            dof=n_res - p,
+            normalised=_noise_normalised(fn_final),
+            optimum=optimum,
+            likelihood_pure=fn_final.pure_likelihood,
+            residual_map=residual_map,
+            expected=expected,
+            used=~saturated,
+            gain=float(obs.gain),
+            read_noise=float(obs.read_noise),
+        )
     else:
-        p_ = space.size
-        cov, stderr = np.full((p_, p_), np.nan), np.full(p_, np.nan)
+        cov, stderr = np.full((p, p), np.nan), np.full(p, np.nan)
         loss = float(stages[-1]["final_loss"][k])
-        shape = tuple(fn_full.target.shape)
-        n_res, s2, note = sum(v.size(shape) for v in fn_full.views), math.nan, ""
+        shape = tuple(fn_final.target.shape)
+        n_res, s2, note = sum(v.size(shape) for v in fn_final.views), math.nan, ""
         residual_map = predicted = None
     n_starts_run = len(stages[0]["n_steps"])
-    where = f"stage {len(factors)}/{len(factors)} at full resolution" if len(factors) > 1 else ""
+    where = f"stage {len(plan)}/{len(plan)} at full resolution" if len(plan) > 1 else ""
     summary = (
         f"{message} ({'best of ' + str(n_starts_run) + ' starts: start ' + str(best_start)}"
         f"{'; ' + where if where else ''}){note}"
     )
-    p = space.size
     reduced = loss / (n_res - p) if n_res > p else math.nan
-    normalised = all(
-        isinstance(v, PixelView) and v.domain in ("anscombe", "pearson") for v in fn_full.views
-    )
-    if normalised and reduced > 3.0:
-        summary += (
-            f"; but the reduced chi-square is {reduced:.3g} (about 1 expected): the model does "
-            "not explain the photo — a local minimum (try more starts or a finer "
-            "coarse_to_fine), or a wrong noise model or model"
-        )
+    if flags:
+        summary += f"; {len(flags)} flag{'s' if len(flags) > 1 else ''}: {flags[0]['message']}"
     return FitResult(
         paths=list(space.paths),
         values=values,
@@ -662,4 +742,48 @@ def fit(
         starts=first_starts,
         residual_map=residual_map,
         model_image=predicted,
+        objective=objective,
+        flags=flags,
+        optimum_check=None if optimum is None else _plain_check(optimum),
     )
+
+
+def _plain_check(optimum: dict) -> dict:
+    """The optimum check's numbers for the result (the latent point left out)."""
+    return {k: v for k, v in optimum.items() if k != "latent"}
+
+
+def _has_likelihood(fn: ResidualFn) -> bool:
+    return any(isinstance(v, PixelView) and v.likelihood for v in fn.views)
+
+
+def _noise_normalised(fn: ResidualFn) -> bool:
+    """Whether the loss is a chi-square: every view a noise-normalised pixel view, weight 1."""
+    return all(
+        isinstance(v, PixelView) and v.domain in ("likelihood", "anscombe", "pearson") and w == 1
+        for v, w in zip(fn.views, fn.weights, strict=True)
+    )
+
+
+def _check_optimum(fn: ResidualFn, latent: Array, space: ParameterSpace) -> dict | None:
+    """:func:`invglare.fit.trust.optimum_check` on the photo's likelihood alone, reusing the
+    fit's compiled programs when its objective was that likelihood. None when the photo's
+    likelihood is undefined (no read noise and dark pixels)."""
+    if not fn.pure_likelihood:
+        try:
+            fn = fn.likelihood_only()
+        except ConfigError:
+            return None
+
+    def information(z):
+        return _information(fn, jnp.asarray(z, dtype=latent.dtype))
+
+    def deviance(z):
+        r = np.asarray(_predict(fn, jnp.asarray(z, dtype=latent.dtype))[3], dtype=np.float64)
+        return float(r @ r)
+
+    def inside(z):
+        x = np.asarray(space.from_latent(jnp.asarray(z, dtype=latent.dtype)))
+        return all(q.lower <= v <= q.upper for q, v in zip(space.all, x, strict=True))
+
+    return optimum_check(information, deviance, np.asarray(latent), inside)

@@ -146,8 +146,9 @@ def fit_staged(
     ```
     """
     paths = space.paths
-    # Early stages only seed the next: no covariance or images (two compilations fewer).
-    early = {"coarse_to_fine": (1,), "diagnostics": False}
+    # Early stages only seed the next: no covariance or images (two compilations fewer), and
+    # a pixel view there may stay in a variance-stabilised domain.
+    early = {"coarse_to_fine": (1,), "diagnostics": False, "final_likelihood": False}
     pre = [(st.views, {**early, "max_steps": st.max_steps}, st.fixed) for st in stages]
     if resume is None:
         plan = pre + ([(views, {}, ())] if final else [])
@@ -183,8 +184,7 @@ def fit_staged(
             round_result = fit(
                 sub, template, target, stage_views, starts=free_starts,
                 n_starts=free_starts.shape[0], progress=_numbered(progress, k, len(plan)),
-                **{**solver, **overrides, "coarse_to_fine": (1,), "diagnostics": False,
-                   "view_options": stage_options},
+                **{**solver, **overrides, **early, "view_options": stage_options},
             )  # fmt: skip
             timing["compile"] += float(round_result.timing_s.get("compile", 0.0))
             timing["solve"] += float(round_result.timing_s.get("solve", 0.0))

@@ -10,7 +10,7 @@ centre.
 
 | name      | residual                                                            |
 |-----------|---------------------------------------------------------------------|
-| `pixels`  | per pixel, variance-stabilised (generalised Anscombe) by default    |
+| `pixels`  | per pixel, the Poisson–Gaussian likelihood's deviance residuals     |
 | `log`     | per pixel, ``log(obs + c) - log(model + c)``                        |
 | `radial`  | ``log(P_target + c) - log(P_model + c)`` of the radial profiles     |
 | `angular` | ``n_bins * (F_target - F_model)``, F the energy fraction per sector |
@@ -19,6 +19,14 @@ centre.
 
 :func:`make_residual_fn` concatenates the chosen views, each multiplied by
 ``sqrt(weight)``, so the loss is ``sum_v weight_v * ||r_v||**2``.
+
+The `pixels` view's residuals are those of the likelihood :mod:`invglare.fit.deviance`
+describes, the one `invglare sample` samples: their sum of squares is ``-2 log L`` up to a
+constant of the data, so a least-squares fit of them is the maximum-likelihood fit. Its
+variance-stabilised domains (``"anscombe"``, ``"pearson"``) are kept for starts and early
+stages only: their optimum is biased (the Anscombe domain puts a flat field's background
+0.13 counts low at gain 2, read noise 3), so :func:`invglare.fit.fit` ends on the
+likelihood whatever domain a final view names.
 
 Centres are ``(x, y)`` in pixel index units (column, row), e.g. ``(w // 2 + dx, h // 2 + dy)``.
 """
@@ -39,6 +47,7 @@ from jax.scipy.special import log_ndtr
 from jaxtyping import Array, ArrayLike, Bool, Float
 
 from invglare.errors import ConfigError
+from invglare.fit.deviance import deviance_residuals, fisher_weight, pixel_log_likelihood_gradient
 from invglare.fit.lash_prior import layout_priors, prior_residuals
 from invglare.fit.observation import Forward, Observation, check_target, fourier_shift
 from invglare.fit.params import ParameterSpace
@@ -46,7 +55,11 @@ from invglare.fit.redraw import mean_prediction
 from invglare.fit.specialise import specialise_forward
 from invglare.fit.trend_jacobian import trend_residuals, trend_steps
 
-PIXEL_DOMAINS = ("anscombe", "pearson", "log")
+PIXEL_DOMAINS = ("likelihood", "anscombe", "pearson", "log")
+
+#: Pixel domains that stabilise the variance: for starts and early stages, never for a
+#: final estimate or its errors (see the module docstring).
+STABILISED_DOMAINS = ("anscombe", "pearson")
 
 _TINY = 1e-30
 
@@ -245,13 +258,14 @@ def pixel_residuals(
     expected: Float[ArrayLike, "h w"],
     noise: Observation,
     *,
-    domain: str = "anscombe",
+    domain: str = "likelihood",
     floor: float | None = None,
     saturated: Bool[ArrayLike, "h w"] | None = None,
     censoring: str = "survival",
     mask: Bool[ArrayLike, "h w"] | None = None,
     read_noise_scale: float = 1.0,
     censor_level: Float[ArrayLike, "h w"] | float | None = None,
+    information: bool = False,
 ) -> Float[Array, " n"]:
     """Per-pixel residuals of an observed photo against the unclipped mean `expected`.
 
@@ -260,11 +274,14 @@ def pixel_residuals(
     - `observed`, `expected`: counts; `expected` is *before* clipping.
     - `noise`: the :class:`~invglare.fit.Observation` holding `gain` and `read_noise`.
     - `domain`:
-      - ``"anscombe"`` (default): ``f(o) - f(e)`` with the generalised Anscombe
+      - ``"likelihood"`` (default): the deviance residuals of the Poisson–Gaussian
+        likelihood (:func:`invglare.fit.deviance.deviance_residuals`): half their sum of
+        squares is ``-log L`` plus a constant, so their least-squares optimum is the
+        maximum-likelihood point;
+      - ``"anscombe"``: ``f(o) - f(e)`` with the generalised Anscombe
         transform :func:`generalised_anscombe`, approximately N(0, 1) per pixel
-        for a few counts and more (biased below about 1 count: use ``"pearson"``
-        there);
-      - ``"pearson"``: ``(o - e) / sqrt(variance(e))``;
+        for a few counts and more; its optimum is biased (for starts only);
+      - ``"pearson"``: ``(o - e) / sqrt(variance(e))`` (biased too: for starts only);
       - ``"log"``: ``log(max(o, 0) + c) - log(max(e, 0) + c)`` with ``c = floor``
         counts (required), a relative comparison that spans the decades of a glare
         profile but is not noise-normalised.
@@ -277,6 +294,12 @@ def pixel_residuals(
       ``factor**2`` pixels).
     - `censor_level`: the level a censored pixel is known to reach (counts; a
       scalar or per pixel); defaults to ``noise.saturation``.
+    - `information`: (``"likelihood"`` only) the residuals' *scoring form*: an unclipped
+      pixel's value is its score over the square root of its Fisher information,
+      ``(dl/de) / sqrt(w)`` (about the deviance residual), and its derivative ``-sqrt(w)
+      de``, so that for the Jacobian `J` of these, ``J^T r`` is the gradient of ``-log L``
+      and ``J^T J`` the Fisher information (a clipped pixel keeps its survival residual).
+      For the covariance and the optimum check of :mod:`invglare.fit.solve`.
 
     **Returns:** a flat vector of ``h * w`` residuals (zeros where unused).
     """
@@ -288,7 +311,17 @@ def pixel_residuals(
     o, e = o.astype(dtype), e.astype(dtype)
     gain = noise.gain.astype(dtype)
     read = noise.read_noise.astype(dtype) * read_noise_scale
-    if domain == "anscombe":
+    if information and domain != "likelihood":
+        raise ConfigError(f"the information form needs the likelihood domain, got {domain!r}")
+    if domain == "likelihood" and information:
+        w = jax.lax.stop_gradient(fisher_weight(e, gain, read))
+        score = jax.lax.stop_gradient(pixel_log_likelihood_gradient(o, e, gain, read))
+        root = jnp.sqrt(w)
+        # Signed like the deviance residual (about (o - e) / sigma, falling as e rises).
+        r = score / root - root * (e - jax.lax.stop_gradient(e))
+    elif domain == "likelihood":
+        r = deviance_residuals(o, e, gain, read)
+    elif domain == "anscombe":
         r = generalised_anscombe(o, gain, read) - generalised_anscombe(e, gain, read)
     elif domain == "pearson":
         var = jnp.maximum(e, 0.0) / gain + read**2
@@ -355,10 +388,12 @@ class PixelView(AbstractView):
     throw away the core, and with it most of what a coarse image says.
     """
 
-    domain: str = eqx.field(static=True, default="anscombe")
+    domain: str = eqx.field(static=True, default="likelihood")
     floor: float | None = eqx.field(static=True, default=None)
     censoring: str = eqx.field(static=True, default="survival")
     factor: int = eqx.field(static=True, default=1)
+    #: The scoring form of the likelihood's residuals (see :func:`pixel_residuals`).
+    information: bool = eqx.field(static=True, default=False)
 
     def __check_init__(self):
         if self.domain not in PIXEL_DOMAINS:
@@ -371,13 +406,20 @@ class PixelView(AbstractView):
             )
         if int(self.factor) != self.factor or self.factor < 1:
             raise ConfigError(f"downsampling factor must be an integer >= 1, got {self.factor!r}")
+        if self.information and (self.domain != "likelihood" or self.factor != 1):
+            raise ConfigError("the information form is that of the full-resolution likelihood")
+
+    @property
+    def likelihood(self) -> bool:
+        """Whether this view's residuals are those of the photo's likelihood."""
+        return self.domain == "likelihood"
 
     def __call__(self, ctx: ViewContext) -> Float[Array, " n"]:
         f = self.factor
         if f == 1:
             return pixel_residuals(
                 ctx.target, ctx.expected, ctx.obs, domain=self.domain, floor=self.floor,
-                saturated=ctx.saturated, censoring=self.censoring,
+                saturated=ctx.saturated, censoring=self.censoring, information=self.information,
             )  # fmt: skip
         t = box_downsample(ctx.target, f)
         e = box_downsample(ctx.expected, f)
@@ -679,13 +721,22 @@ class ResidualFn(eqx.Module):
 
     def exact_at_parts(self, parts: Sequence[Array]) -> Float[Array, " n"]:
         """:meth:`at_parts` differentiated exactly, whatever `trend_step` says."""
-        ctx = self.context(list(parts))
+        return self._weighted(self.context(list(parts)), list(parts))
+
+    def evaluate(self, latent: Float[Array, " p"]) -> tuple[Float[Array, " n"], ViewContext]:
+        """The residuals and the context they came from (one model evaluation)."""
+        ctx = self.context(latent)
+        return self._weighted(ctx, latent), ctx
+
+    def _weighted(
+        self, ctx: ViewContext, latent: Float[Array, " p"] | Sequence[Array]
+    ) -> Float[Array, " n"]:
         weighted = [
             math.sqrt(wt) * v(ctx).astype(self.target.dtype)
             for v, wt in zip(self.views, self.weights, strict=True)
         ]
         if self.priors:
-            fwd = self.forward_at(list(parts))
+            fwd = self.forward_at(latent)
             weighted.append(prior_residuals(self.priors, fwd).astype(self.target.dtype))
         return jnp.concatenate(weighted)
 
@@ -701,6 +752,93 @@ class ResidualFn(eqx.Module):
             for v in self.views
         )
         return dataclasses.replace(self, views=views)
+
+    # ---- the likelihood
+
+    @property
+    def pure_likelihood(self) -> bool:
+        """Whether ``sum(r**2) / 2`` is ``-log L`` plus a constant: one full-resolution pixel
+        view in the likelihood domain, weight 1 (with a lash layout's prior residuals, the
+        log posterior's, as the sampler's)."""
+        return (
+            len(self.views) == 1
+            and isinstance(self.views[0], PixelView)
+            and self.views[0].likelihood
+            and self.views[0].factor == 1
+            and self.weights[0] == 1.0
+        )
+
+    def stabilised_views(self) -> tuple[str, ...]:
+        """Names of the pixel views in a variance-stabilised domain (starts only)."""
+        return tuple(
+            n
+            for n, v in zip(self.names, self.views, strict=True)
+            if isinstance(v, PixelView) and v.domain in STABILISED_DOMAINS
+        )
+
+    def with_likelihood(self) -> ResidualFn:
+        """The same views with every variance-stabilised pixel view in the likelihood domain."""
+        views = tuple(
+            dataclasses.replace(v, domain="likelihood")
+            if isinstance(v, PixelView) and v.domain in STABILISED_DOMAINS
+            else v
+            for v in self.views
+        )
+        check_likelihood_photo(self.forward.obs, self.target, self.saturated)
+        return dataclasses.replace(self, views=views)
+
+    def likelihood_only(self) -> ResidualFn:
+        """The photo's likelihood alone: one full-resolution pixel view, weight 1 (keeping a
+        pixel view's censoring)."""
+        censoring = next((v.censoring for v in self.views if isinstance(v, PixelView)), "survival")
+        check_likelihood_photo(self.forward.obs, self.target, self.saturated)
+        view = PixelView(domain="likelihood", censoring=censoring)
+        # Pixels are differentiated exactly, against the model's own draw.
+        return dataclasses.replace(
+            self, views=(view,), names=("pixels",), weights=(1.0,), trend_step=(), model_draws=1
+        )
+
+    def information_form(self) -> ResidualFn:
+        """The likelihood's pixel views in their scoring form (see :func:`pixel_residuals`):
+        ``J^T J`` is then the Fisher information plus the other views' Gauss–Newton terms."""
+        views = tuple(
+            dataclasses.replace(v, information=True)
+            if isinstance(v, PixelView) and v.likelihood and v.factor == 1
+            else v
+            for v in self.views
+        )
+        return dataclasses.replace(self, views=views)
+
+    def objective(self) -> str:
+        """What the residuals' sum of squares is, in words (for a report)."""
+        parts = []
+        for name, view, weight in zip(self.names, self.views, self.weights, strict=True):
+            if isinstance(view, PixelView) and view.likelihood:
+                what = "the Poisson–Gaussian likelihood of the pixels (deviance residuals"
+                what += ", clipped pixels censored)" if view.censoring == "survival" else ")"
+            elif isinstance(view, PixelView):
+                what = f"pixels in the {view.domain} domain"
+            else:
+                what = f"the {name} view"
+            parts.append(what + (f" × {weight:g}" if weight != 1.0 else ""))
+        return " + ".join(parts)
+
+
+def check_likelihood_photo(
+    obs: Observation, target: Float[ArrayLike, "h w"], saturated: Bool[ArrayLike, "h w"]
+) -> None:
+    """Refuse a photo whose likelihood is degenerate: pixels at or below 0 counts with no
+    read noise have no variance in the Poisson–Gaussian model (`ConfigError`)."""
+    read = obs.read_noise
+    if isinstance(read, jax.core.Tracer) or float(read) > 0:
+        return
+    dark = (np.asarray(target) <= 0) & ~np.asarray(saturated, bool)
+    if dark.any():
+        raise ConfigError(
+            f"the photo has {int(dark.sum())} pixels at or below 0 counts and the noise model "
+            "no read noise: the Poisson–Gaussian likelihood gives them no variance; set "
+            "observation.read_noise to the camera's read noise (counts rms, > 0)"
+        )
 
 
 def make_residual_fn(
@@ -764,6 +902,8 @@ def make_residual_fn(
         weights.append(wt)
     dtype = jnp.result_type(float)
     target_arr = jnp.asarray(tgt, dtype=dtype)
+    if any(isinstance(v, PixelView) and v.likelihood for v in built):
+        check_likelihood_photo(obs, tgt, obs.saturated_mask(tgt))
     return ResidualFn(
         space=space,
         forward=forward_template,

@@ -8,8 +8,11 @@ integrates over its :class:`~invglare.optics.spectral.Spectrum`, returning
 * a monochrome PSF ``(npix, npix)`` for one wavelength, or
 * a linear RGB PSF ``(npix, npix, 3)`` for several,
 
-normalised as in :mod:`invglare.optics.fraunhofer` (fraction of the transmitted
-power per pixel; for RGB the luminance Y carries that normalisation).
+normalised as in :mod:`invglare.optics.fraunhofer` (fraction of the power through the
+aperture per pixel; for RGB the luminance Y carries that normalisation). That power is the
+area of a lone disk, ellipse, polygon or capsule in closed form
+(:meth:`~invglare.aperture.Aperture.open_area_mm2`), and the raster's transmission
+``sum |t| pitch^2`` for any other aperture.
 """
 
 from __future__ import annotations
@@ -113,7 +116,8 @@ class AperturePSF(AbstractRasterModel):
     def psf(self) -> Float[Array, "npix npix"] | Float[Array, "npix npix 3"]:
         """The PSF: mono ``(npix, npix)`` for one wavelength, linear RGB ``(npix, npix, 3)``."""
         field = self.transmission()
-        return self.spectrum.integrate(lambda lam: self.propagator(field, lam))
+        area = self.aperture.open_area_mm2()
+        return self.spectrum.integrate(lambda lam: self.propagator(field, lam, open_area_mm2=area))
 
     # ------------------------------------------------------------------ the model interface
 

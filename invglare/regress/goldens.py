@@ -57,7 +57,7 @@ def header_for(case: Case, model: Any) -> tuple[dict[str, Any], dict[str, Any], 
         "regressionCase": case.name,
         "regressionDescription": case.description,
         "propagationMethod": model.header()["propagationMethod"],
-        "psfNormalisation": "fraction of the transmitted power per pixel",
+        "psfNormalisation": "fraction of the power through the aperture per pixel",
     }
     if case.light_angle_deg is not None:
         attrs["lightAngleDeg"] = [float(a) for a in case.light_angle_deg]

@@ -31,12 +31,14 @@ EYE = {
 }
 
 def dft_psf(field, pitch_mm: float, wavelength_nm: float, theta_rad) -> np.ndarray:
-    """The fraction of the transmitted power per output pixel, by a direct DFT (float64).
+    """The fraction of the power through the aperture per output pixel, by a direct DFT.
 
     ``I = |sum f exp(-2 pi i (x theta_x + y theta_y) / lambda)|² pitch² dtheta² /
-    (lambda² sum |f|²)`` at the angles `theta_rad` (pixel centres, spacing dtheta). At the
-    Nyquist spacing ``dtheta = lambda / (2 n pitch)`` over ``2n x 2n`` pixels the sum is
-    exactly 1 (Parseval of the ``2n``-point DFT); over fewer pixels, the power they hold.
+    (lambda² sum |f|)`` (float64) at the angles `theta_rad` (pixel centres, spacing dtheta),
+    per unit power through the aperture, its open area ``sum |f| pitch²``. At the Nyquist
+    spacing ``dtheta = lambda / (2 n pitch)`` over ``2n x 2n`` pixels the sum is exactly
+    the raster's own power over that, ``sum |f|² / sum |f|`` (Parseval of the ``2n``-point
+    DFT); over fewer pixels, the power they hold.
     """
     field = np.asarray(field, dtype=np.float64)
     n = field.shape[0]
@@ -46,7 +48,7 @@ def dft_psf(field, pitch_mm: float, wavelength_nm: float, theta_rad) -> np.ndarr
     kernel = np.exp(-2j * np.pi * np.outer(theta, x_mm) / lam_mm)
     amplitude = kernel @ field @ kernel.T
     dtheta = theta[1] - theta[0]
-    return np.abs(amplitude) ** 2 * pitch_mm**2 * dtheta**2 / (lam_mm**2 * np.sum(field**2))
+    return np.abs(amplitude) ** 2 * pitch_mm**2 * dtheta**2 / (lam_mm**2 * np.sum(np.abs(field)))
 
 
 def expected_psf_sums(model) -> np.ndarray:
@@ -57,10 +59,12 @@ def expected_psf_sums(model) -> np.ndarray:
     theta = np.asarray(prop.output.coords_rad(), dtype=np.float64)
     sums = []
     for lam in model.wavelengths_nm:
-        # Parseval first: the whole plane at the Nyquist spacing holds all the power.
+        # Parseval first: the whole plane at the Nyquist spacing holds the raster's power.
         n = field.shape[0]
         nyquist = (np.arange(2 * n) - n) * lam * 1e-6 / (2 * n * pitch)
-        assert dft_psf(field, pitch, lam, nyquist).sum() == pytest.approx(1.0, rel=1e-12)
+        f64 = np.abs(field.astype(np.float64))
+        raster_power = np.sum(f64**2) / np.sum(f64)
+        assert dft_psf(field, pitch, lam, nyquist).sum() == pytest.approx(raster_power, rel=1e-12)
         sums.append(dft_psf(field, pitch, lam, theta).sum())
     return np.asarray(sums)
 
@@ -91,9 +95,9 @@ def test_eye_config_builds_a_kakimoto_model_with_eye_defaults():
     psf = np.asarray(model())
     assert psf.shape == (64, 64)
     assert np.all(np.isfinite(psf))
-    # Unit energy over the whole plane; the 64 px crop of the 128 px FFT holds the power
-    # of its pixels (0.984 here; the model agrees to 1.5e-6, float32), derived by a direct
-    # DFT of the model's field.
+    # Per unit power through the aperture; the 64 px crop of the 128 px FFT holds the power
+    # of its pixels (0.955 here: the lashes' and cells' edges send some beyond the grid;
+    # the model agrees to 1.5e-6, float32), derived by a direct DFT of the model's field.
     assert model.propagator.method == "fft" and model.propagator.fft_npix == 128
     expected = expected_psf_sums(model)
     assert 0.9 < expected[0] < 0.999
@@ -107,11 +111,12 @@ def test_camera_config_takes_the_diaphragm_focal_length_and_paper_rgb():
     np.testing.assert_allclose(model.spectrum.wavelengths_nm, [680.0, 530.0, 460.0])
     psf = np.asarray(model())
     assert psf.shape == (64, 64, 3)
-    # paper_rgb: each channel is a unit-energy monochromatic PSF, of which the output
-    # pixels hold what a direct DFT of the model's field at that wavelength puts there
-    # (0.948, 0.951, 0.961; the model agrees to 6e-7, float32).
+    # paper_rgb: each channel is a monochromatic PSF per unit power through the aperture,
+    # of which the output pixels hold what a direct DFT of the model's field at that
+    # wavelength puts there (0.789, 0.792, 0.799: the filter's many sharp lines on a
+    # 64-sample raster send a fifth beyond the grid; the model agrees to 6e-7, float32).
     expected = expected_psf_sums(model)
-    assert np.all((0.9 < expected) & (expected < 0.999))
+    assert np.all((0.75 < expected) & (expected < 0.999))
     np.testing.assert_allclose(psf.sum(axis=(0, 1)), expected, rtol=2e-5)
 
 

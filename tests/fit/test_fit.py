@@ -13,8 +13,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from helpers import x64
-from jaxtyping import Array, Float
+from helpers import GaussPSF, x64
 from scipy.integrate import quad
 
 from invglare.aperture import Aperture, Disk, RegularPolygon
@@ -52,20 +51,6 @@ ROTATION = "model.aperture.shapes[0].rotation_deg"
 def _float64():
     with x64():
         yield
-
-
-class GaussPSF(eqx.Module):
-    """A unit-energy Gaussian PSF on an `npix` grid: a cheap model for solver tests."""
-
-    sigma_px: Float[Array, ""] = eqx.field(converter=jnp.asarray)
-    npix: int = eqx.field(static=True, default=32)
-    unused: Float[Array, ""] = eqx.field(converter=jnp.asarray, default=0.0)  # no effect
-
-    def __call__(self):
-        c = self.npix // 2
-        x = jnp.arange(self.npix, dtype=self.sigma_px.dtype) - c
-        g = jnp.exp(-(x[None, :] ** 2 + x[:, None] ** 2) / (2 * self.sigma_px**2))
-        return g / jnp.sum(g)
 
 
 def disk_model(diameter=3.0):
@@ -530,7 +515,11 @@ def test_residual_gradient_matches_finite_differences_with_nuisances(disk_proble
     jac = np.asarray(jax.jit(jax.jacfwd(lambda v: fn(v, None)))(z))
     f = jax.jit(lambda v: fn(v, None))
     for i, path in enumerate(space.paths):
-        assert_converges_to(jac[:, i], f, z, i, path)
+        # The likelihood's residuals curve more in the flux's log latent and the centre
+        # (flux 3.9e-4 at 1e-3, 3.9e-6 at 1e-4; dy 1.0e-4, 1.04e-6: quadratic): smaller
+        # steps for those.
+        steps = (3e-4, 3e-5) if path in ("obs.flux", "obs.dx_px", "obs.dy_px") else (1e-3, 1e-4)
+        assert_converges_to(jac[:, i], f, z, i, path, steps=steps)
     # The LM's Jacobian, one parameter's path at a time (ResidualFn.at_parts), is the same.
     by_parts, value = eqx.filter_jit(jacobian_columns)(fn, z)
     np.testing.assert_allclose(by_parts, jac, rtol=1e-10, atol=1e-10 * np.abs(jac).max())
@@ -559,9 +548,16 @@ def test_disk_diameter_recovered_within_2pc_from_3_starts(disk_problem):
 
 @pytest.mark.slow
 def test_disk_bfgs_converges_within_2pc(disk_problem):
+    """BFGS from 3 starts across [2, 5] mm, the pixels first in the Anscombe domain: far
+    from the optimum the Gaussian likelihood punishes a model without light where the photo
+    has it by ``(o - e)**2 / V(e)``, and BFGS on it alone stopped at 2.05 mm (every start;
+    losses 1.3e6-2.1e6 against 4216 at 3.0 mm). The fit ends on the likelihood."""
     space, template, target = disk_problem
-    res = fit(space, template, target, {"pixels": 1.0}, solver="bfgs", n_starts=3, max_steps=400)
+    opts = {"pixels": {"domain": "anscombe"}}
+    res = fit(space, template, target, {"pixels": 1.0}, solver="bfgs", n_starts=3, max_steps=400,
+              view_options=opts)  # fmt: skip
     assert res.converged, res.message
+    assert res.stages[-1]["likelihood"] and not res.flags, res.flags
     assert abs(res.values[DIAMETER] - 3.0) < 0.02 * 3.0
 
 
@@ -656,7 +652,12 @@ def test_covariance_of_linear_problem_equals_analytic_1e6():
     np.testing.assert_allclose(
         [absolute.values["obs.flux"], absolute.values["obs.background"]], coef, rtol=1e-8
     )
-    chi2 = fit(space, Forward(GaussPSF(1.7, n), obs), target, views, **kw)
+    # The Pearson domain is a first pass: the fit ends on the likelihood (the same here: a
+    # constant variance), and says so.
+    assert [st.get("likelihood") for st in absolute.stages] == [False, True]
+    assert "refined from a first pass in the pearson domain" in absolute.objective
+    chi2 = fit(space, Forward(GaussPSF(1.7, n), obs), target, views, **kw,
+               covariance_scale="chi2")  # fmt: skip
     s2 = np.sum((target.ravel() - a @ coef) ** 2) / sigma**2 / (n * n - 2)
     np.testing.assert_allclose(chi2.covariance, s2 * analytic, rtol=1e-6)
     np.testing.assert_allclose(chi2.stderr["obs.flux"], math.sqrt(s2 * analytic[0, 0]), rtol=1e-6)

@@ -200,6 +200,11 @@ def test_fit_report_files_and_recovery_with_clipped_core(disk_report):
     assert last["views"] == {"pixels": 1.0} and len(last["final_loss"]) == 1
     assert last["origin"] == [params["best_start"]] and first["best"] == params["best_start"]
     assert "1) radial 1 → 2) pixels 1" in text
+    # The final stage maximised the likelihood, at its optimum; the report leads with that.
+    assert params["objective"].startswith("the Poisson–Gaussian likelihood of the pixels")
+    assert params["optimum_check"]["gain"] < 0.5 and params["covariance_scale"] == 1.0
+    assert params["flags"] == [] and "> **No flags:** at the likelihood's optimum" in text
+    assert text.index("No flags") < text.index("## Result")
 
 
 def test_load_fit_setup_is_a_clean_public_object(disk):
@@ -251,7 +256,12 @@ def test_wrong_pixel_scale_is_recovered_when_free(disk, path, scale, tol):
       Fourier transform at the fitted scale, exactly: within 0.2 %.
 
     The diameter is fixed at its truth here: for a lone disk, diameter and pixel scale
-    change the PSF the same way (its size scales with 1 / (diameter * scale)).
+    change the PSF the same way (its size scales with 1 / (diameter * scale)). From the
+    one start 20 % off, the pixels go first in the generalised-Anscombe domain, whose
+    basin is wider here (the likelihood alone, from a model 25 % too small, ended at a
+    ratio of 1.075, reduced chi-square 128); the fit ends on the likelihood, and the
+    report says so. The resampled core misfits the photo (reduced chi-square ~8 for 0.8):
+    the report flags it, naming the model as the likely cause.
     """
     (disk / "model_fixed.toml").write_text(
         DISK_MODEL.format(kind="disk", extra="").replace("3.5", "3.0")
@@ -268,7 +278,8 @@ nuisance = true
         disk, free=free, target_extra=f"\npixel_scale_deg = {scale}", name="scale.toml"
     ).read_text()
     config = disk / "scale.toml"
-    config.write_text(text.replace('config = "model.toml"', 'config = "model_fixed.toml"'))
+    text = text.replace('config = "model.toml"', 'config = "model_fixed.toml"')
+    config.write_text(text + '\n[view_options.pixels]\ndomain = "anscombe"\n')
     out = disk / "scale_report"
     result = invoke("fit", config, "--out-dir", out, "--no-progress", "--n-starts", 1)
     assert result.exit_code == 0, result.output
@@ -281,6 +292,11 @@ nuisance = true
     assert params["converged"]
     assert abs(entry["value"] - truth) < tol * truth
     assert abs(params["parameters"]["obs.dx_px"]["value"] - 0.3) < 0.03
+    assert params["objective"].endswith("refined from a first pass in the anscombe domain")
+    assert [st.get("likelihood") for st in params["stages"]] == [False, True]
+    if path == RATIO:
+        chi2 = [f for f in params["flags"] if f["kind"] == "reduced_chi2"]
+        assert chi2 and chi2[0]["cause"] == "model_misfit", params["flags"]
 
 
 BLADES = "model.aperture.shapes[0].n_blades"

@@ -106,7 +106,9 @@ def test_synth_writes_photo_and_truth(disk_photo):
     assert truth["stats"]["saturated_pixels"] > 0
     assert truth["stats"]["peak_expected_counts"] > 30000.0
     corner = data[:12, :12]
-    assert abs(corner.mean() - 20.0) < 1.0  # the Airy wings add a little
+    # The Airy wings add 1.3 counts there (the expected corner mean is 21.30); the mean of
+    # 144 pixels of noise 4.4 is good to 0.37 (1.5 is 4 of those).
+    assert abs(corner.mean() - 21.3) < 1.5
     assert 3.0 < corner.std() < 6.0  # sqrt(20 / 2 + 3**2) = 4.4
     assert truth_path_for(spec.with_name("photo.exr")) == spec.with_name("photo.truth.json")
 

@@ -82,6 +82,16 @@ class Aperture(eqx.Module):
             base = jnp.ones((grid.npix, grid.npix), dtype=jnp.asarray(grid.pitch_mm).dtype)
         return occlude(base, *blocks)
 
+    def open_area_mm2(self) -> Float[Array, ""] | None:
+        """The opening's area (mm²) in closed form: a lone open shape's; None otherwise.
+
+        Unions, occluders and image masks have none; a PSF then measures the power
+        through the aperture on its raster (see :mod:`invglare.optics.fraunhofer`).
+        """
+        if len(self.shapes) == 1 and self.shapes[0].role == "open":
+            return self.shapes[0].area_mm2()
+        return None
+
     def extent_mm(self) -> float:
         """Diameter (mm) of the smallest disk centred on the origin containing the open shapes.
 

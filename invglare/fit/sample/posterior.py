@@ -8,6 +8,7 @@ checking the space, priors, target and options first.
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import math
 from collections.abc import Mapping
@@ -199,6 +200,8 @@ def make_log_posterior(
             residual_fn = make_residual_fn(
                 space, forward_template, tgt, views, view_options=options
             )
+        # A lash layout's prior is in log_prior, once.
+        residual_fn = dataclasses.replace(residual_fn, priors=())
     m = None
     if mask is not None:
         m = jnp.asarray(mask, bool)
