@@ -15,7 +15,6 @@ centre.
 | `radial`  | ``log(P_target + c) - log(P_model + c)`` of the radial profiles     |
 | `angular` | ``n_bins * (F_target - F_model)``, F the energy fraction per sector |
 | `halo`    | ring radius of the target minus that of the model, px               |
-| `symmetry`| per pixel, the residual's point asymmetry about the source (centre) |
 
 :func:`make_residual_fn` concatenates the chosen views, each multiplied by
 ``sqrt(weight)``, so the loss is ``sum_v weight_v * ||r_v||**2``.
@@ -49,7 +48,7 @@ from jaxtyping import Array, ArrayLike, Bool, Float
 from invglare.errors import ConfigError
 from invglare.fit.deviance import deviance_residuals, fisher_weight, pixel_log_likelihood_gradient
 from invglare.fit.lash_prior import layout_priors, prior_residuals
-from invglare.fit.observation import Forward, Observation, check_target, fourier_shift
+from invglare.fit.observation import Forward, Observation, check_target
 from invglare.fit.params import ParameterSpace
 from invglare.fit.redraw import mean_prediction
 from invglare.fit.specialise import specialise_forward
@@ -551,60 +550,6 @@ class HaloView(AbstractView):
         return 1
 
 
-def point_reflection(image: Float[ArrayLike, "h w"], dx_px: ArrayLike, dy_px: ArrayLike) -> Array:
-    """`image` reflected through the point ``(w // 2 + dx, h // 2 + dy)`` (pixel index units).
-
-    The reflection through pixel ``(w // 2, h // 2)`` is an exact index flip (periodic);
-    the sub-pixel rest is a Fourier shift by twice the offset (exact for band-limited
-    images, see :func:`~invglare.fit.observation.fourier_shift`).
-    """
-    image = jnp.asarray(image)
-    h, w = image.shape
-    flipped = jnp.roll(image[::-1, ::-1], (2 * (h // 2) + 1 - h, 2 * (w // 2) + 1 - w), (0, 1))
-    return fourier_shift(flipped, 2.0 * jnp.asarray(dx_px), 2.0 * jnp.asarray(dy_px))
-
-
-class SymmetryView(AbstractView):
-    """The point asymmetry of the pixel residuals about the source, noise-normalised.
-
-    The far field of a real aperture is point-symmetric, ``I(x) = I(-x)`` about the
-    source, whatever its random structure: photo and model are both symmetric about
-    their centres, however their lashes or particles were drawn. The residual image
-    ``d = target - model`` (the clipped prediction), tapered by a window symmetric about
-    the model's centre (1 out to `taper` of the largest radius that fits in the frame,
-    a cosine to 0 at that radius, so that the frame's edge and the reflection's wrap
-    never enter), is reflected through that centre (:func:`point_reflection`), and
-    ``(d - reflected d) / (2 w sqrt(v))`` is returned per pixel (``w`` the window, ``v``
-    the noise variance of the model's expected counts: the pair's standard deviation,
-    each pair counted twice; pixels where it is below 0.05 give 0): noise only at the
-    true centre for any draw (with a little numerical asymmetry from the clip, which the
-    Fourier reflection does not carry exactly). It fixes the source's sub-pixel position
-    where statistics cannot (a radial profile depends on the centre only to second
-    order), and says nothing about anything symmetric.
-    """
-
-    taper: float = eqx.field(static=True, default=0.8)
-
-    def __call__(self, ctx):
-        h, w = ctx.target.shape
-        dx, dy = ctx.obs.dx_px, ctx.obs.dy_px
-        _, _, r, _ = _offsets((h, w), ctx.centre, ctx.target.dtype)
-        r_max = min(h, w) / 2 - 2.0
-        r_in = self.taper * r_max
-        u = jnp.clip((r - r_in) / (r_max - r_in), 0.0, 1.0)
-        window = 0.5 * (1.0 + jnp.cos(math.pi * u))
-        d = window * (ctx.target - ctx.predicted)
-        a = d - point_reflection(d, dx, dy)
-        # Var(a) = 2 w**2 v (the window and, at the true centre, v are symmetric); each pair
-        # of pixels appears twice, hence the further 2.
-        inside = window > 0.05
-        sd = 2.0 * window * jnp.sqrt(jnp.maximum(ctx.obs.variance(ctx.expected), _TINY))
-        return jnp.where(inside, a / jnp.where(inside, sd, 1.0), 0.0).reshape(-1)
-
-    def size(self, shape):
-        return shape[0] * shape[1]
-
-
 #: View names accepted by :func:`make_residual_fn`, with their classes.
 VIEWS: dict[str, type[AbstractView]] = {
     "pixels": PixelView,
@@ -612,7 +557,6 @@ VIEWS: dict[str, type[AbstractView]] = {
     "radial": RadialView,
     "angular": AngularView,
     "halo": HaloView,
-    "symmetry": SymmetryView,
 }
 
 
@@ -626,7 +570,7 @@ def _defaults(name: str, shape, obs: Observation, target: np.ndarray) -> dict:
     """Options of a view that depend on the image: sizes, radii and floors."""
     r_max = float(min(shape) // 2 - 1)
     floor = max(_noise_floor(obs), 1e-6 * float(np.max(np.abs(target))), 1e-30)
-    if name in ("pixels", "symmetry"):
+    if name == "pixels":
         return {}
     if name == "log":
         return {"domain": "log", "floor": 3.0 * floor}

@@ -1,7 +1,6 @@
 """Fits of eyes the model did not draw: other draws (invglare.fit.redraw), the scatter of
-statistics between eyes (invglare.fit.draw_scatter), trend Jacobians
-(invglare.fit.trend_jacobian) and the point-symmetry view. A 48² daylight eye keeps the
-file quick."""
+statistics between eyes (invglare.fit.draw_scatter) and trend Jacobians
+(invglare.fit.trend_jacobian). A 48² daylight eye keeps the file quick."""
 
 from __future__ import annotations
 
@@ -20,7 +19,7 @@ from invglare.fit import Forward, Observation, Parameter, ParameterSpace
 from invglare.fit.draw_scatter import estimate_scatter, scatter_covariance, scatter_options
 from invglare.fit.redraw import mean_prediction, random_keys, redraw
 from invglare.fit.trend_jacobian import COUNT_STEP, TREND_STEP, trend_steps
-from invglare.fit.views import make_residual_fn, point_reflection
+from invglare.fit.views import make_residual_fn
 from invglare.models.kakimoto import KakimotoGlare
 
 PUPIL = "model.aperture.pupil.diameter_mm"
@@ -80,40 +79,6 @@ def test_redraw_draws_another_eye_with_the_same_parameters():
         )
         one, _ = mean_prediction(fwd, 1)
         np.testing.assert_allclose(np.asarray(one), np.asarray(fwd.expected()), rtol=1e-12)
-
-
-def test_point_reflection_is_exact_for_a_symmetric_band_limited_image():
-    """A Gaussian centred at (w//2 + 0.3, h//2 - 0.2) is its own reflection through its
-    centre to 1e-9 (relative to its peak), and not through the pixel centre."""
-    with helpers.x64():
-        y, x = np.indices((N, N), dtype=float)
-        img = np.exp(-((x - N // 2 - 0.3) ** 2 + (y - N // 2 + 0.2) ** 2) / 18.0)
-        same = np.asarray(point_reflection(img, 0.3, -0.2))
-        assert np.max(np.abs(same - img)) < 1e-9
-        assert np.max(np.abs(np.asarray(point_reflection(img, 0.0, 0.0)) - img)) > 0.05
-
-
-def test_symmetry_view_is_noise_for_any_draw_and_finds_the_centre():
-    """A photo of another eye (other lashes and cells) against the model at the true
-    centre: the symmetry residuals are about noise (measured 1.18 per pixel used; 0.37 of
-    numerical asymmetry from the clipped core on a noise-free photo), 0.1 px off, 16; and
-    the loss over centres 0.02 px apart is least at the truth, in x and in y."""
-    with helpers.x64():
-        photo = _photo(_forward(seed=31))
-        fwd = _forward(seed=7)
-        space = ParameterSpace(
-            [Parameter("obs.dx_px", -2, 2, init=0.3), Parameter("obs.dy_px", -2, 2, init=-0.2)]
-        )
-        fn = make_residual_fn(space, fwd, photo, {"symmetry": 1.0})
-        loss = eqx.filter_jit(lambda f, c: f.loss(space.to_latent(c)))
-        used = int(jnp.sum(fn(space.to_latent(jnp.asarray([0.3, -0.2])), None) != 0))
-        at_truth = float(loss(fn, jnp.asarray([0.3, -0.2]))) / used
-        assert at_truth < 1.5, at_truth
-        assert float(loss(fn, jnp.asarray([0.4, -0.2]))) / used > 5.0 * at_truth
-        grid = np.arange(-0.06, 0.061, 0.02)
-        best_x = grid[np.argmin([float(loss(fn, jnp.asarray([0.3 + g, -0.2]))) for g in grid])]
-        best_y = grid[np.argmin([float(loss(fn, jnp.asarray([0.3, -0.2 + g]))) for g in grid])]
-        assert abs(best_x) < 0.015 and abs(best_y) < 0.015, (best_x, best_y)
 
 
 @pytest.mark.slow
