@@ -27,6 +27,7 @@ from invglare.bench.runner import (
 from invglare.bench.sample import SAMPLE_CASES
 from invglare.bench.temporal_cases import STAGES, stage_markdown
 from invglare.bench.timing import measure
+from invglare.bench.unknown_draw import UNKNOWN_DRAW_CASES
 from invglare.cli import app
 from invglare.errors import ConfigError
 
@@ -144,7 +145,7 @@ def test_add_ratios_from_synthetic_records():
 def test_select_patterns_skip_and_fit():
     cases, fits = select([])
     assert [c.name for c in cases] == [c.name for c in CASES]
-    assert fits == [*FIT_CASES, *SAMPLE_CASES]
+    assert fits == [*FIT_CASES, *SAMPLE_CASES, *UNKNOWN_DRAW_CASES]
     # A pattern brings the floors and JAX's FFT along, and leaves the fit out.
     cases, fits = select(["psf_mono"])
     names = {c.name for c in cases}
@@ -152,7 +153,9 @@ def test_select_patterns_skip_and_fit():
     assert "eye_raster" not in names and fits == []
     # Only the fit: no per-size cases at all.
     cases, fits = select(["fit"])
-    assert cases == [] and fits == ["fit_daylight_eye"]
+    assert cases == [] and fits == ["fit_daylight_eye", "fit_unknown_draw"]
+    cases, fits = select(["unknown"])
+    assert cases == [] and fits == ["fit_unknown_draw"]
     cases, fits = select(["sample"])
     assert cases == [] and fits == ["sample_daylight_eye"]
     # Everything but the fit and the sampling.
