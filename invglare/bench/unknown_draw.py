@@ -52,8 +52,8 @@ def _replace(text: str, pattern: str, repl: str) -> str:
 def _write_inputs(folder: Path) -> Path:
     """The photo (by ``invglare synth``'s code), its model config and the fit config: the
     bundled configs' text with the photo, the grid and the eye's seed replaced."""
-    from invglare.commands.synth import synthesize, write_synth
     from invglare.config.synth import load_synth
+    from invglare.config.synth_photo import synthesize, write_synth
     from invglare.files.atomic import write_text_atomic
 
     model = _replace(MODEL.read_text(), r"^npix = \d+", f"npix = {NPIX}")
