@@ -1,4 +1,4 @@
-"""Propagators: from an aperture field to a unit-energy PSF on a chosen output grid.
+"""Propagators: from an aperture field to a PSF per unit power through it, on a chosen grid.
 
 A propagator is chosen once, when a model is built, and is an object, not a string: an
 abstract :class:`AbstractPropagator` with one final class per way of getting from the
@@ -50,7 +50,7 @@ MAX_AUTO_FFT_NPIX = 4096
 
 
 class AbstractPropagator(eqx.Module):
-    """Aperture field → unit-energy PSF (see :mod:`invglare.optics.fraunhofer`).
+    """Aperture field → PSF per unit power through it (see :mod:`invglare.optics.fraunhofer`).
 
     **Fields every propagator has:**
 
