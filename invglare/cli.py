@@ -178,11 +178,15 @@ def scene(
     out: Annotated[Path, typer.Option("--out", "-o", help="Output EXR.")] = Path("scene.exr"),
     npix: Annotated[int, typer.Option(help="Image size in pixels.")] = 256,
     seed: Annotated[int, typer.Option(help="Random seed of the procedural scene.")] = 0,
+    depth: Annotated[
+        Path | None,
+        typer.Option(help="Also write the scene's depth buffer (EXR, Z in metres) here."),
+    ] = None,
 ) -> None:
     """Write one of the bundled procedural HDR scenes (linear cd/m^2) as EXR."""
     from invglare.commands.render import run_scene
 
-    run_scene(name, out, npix, seed)
+    run_scene(name, out, npix, seed, depth)
 
 
 @app.command()

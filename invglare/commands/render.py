@@ -20,13 +20,15 @@ ANIMATION_SUFFIXES = (".mp4", ".gif")
 ANIMATION_CHUNK = 8
 
 
-def run_scene(name: str, out: Path, npix: int, seed: int) -> None:
+def run_scene(name: str, out: Path, npix: int, seed: int, depth: Path | None = None) -> None:
     from invglare.render.scenes import SCENES, write_scene
 
     if name not in SCENES:
         raise ConfigError(f"unknown scene {name!r}; bundled scenes: {', '.join(SCENES)}")
-    write_scene(name, out, npix=npix, seed=seed)
+    write_scene(name, out, npix=npix, seed=seed, depth_path=depth)
     log.info("wrote %s (%s, %dx%d, linear cd/m^2)", out, name, npix, npix)
+    if depth is not None:
+        log.info("wrote %s (its depth buffer: Z, planar metres)", depth)
 
 
 def psf_at_scale(model, scale_deg: float, max_npix: int):
