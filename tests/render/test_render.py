@@ -169,6 +169,9 @@ def test_fft_size_is_smallest_235_smooth():
         m = fft_size(n)
         assert m >= n and smooth(m)
         assert not any(smooth(k) for k in range(n, m))
+        even = fft_size(n, even=True)  # the holographic eye's cropped grids
+        assert even >= n and even % 2 == 0 and smooth(even)
+        assert not any(smooth(k) for k in range(n, even) if k % 2 == 0)
 
 
 def test_resample_psf_energy_and_width():
