@@ -228,9 +228,12 @@ def holographic_from_config(
     lams = [lams] if isinstance(lams, int | float) else lams
     if not all(isinstance(v, int | float) and not isinstance(v, bool) for v in lams):
         raise ConfigError(f"spectrum.wavelengths_nm must be numbers (nm), got {lams!r}")
-    scale = pixel_scale_deg if pixel_scale_deg is not None else scale
     if scale is not None and window is not None:
         raise ConfigError("give model.window_mm or output.pixel_scale_deg, not both")
+    if pixel_scale_deg is not None:
+        # An override (--pixel-scale-deg, a fitted photo's scale) sets the sampling, as it
+        # does for every model kind: it replaces the window the config gives.
+        scale, window = pixel_scale_deg, None
     return HolographicEye.build(
         eye,
         npix=out_npix if npix is None else npix,
