@@ -513,6 +513,11 @@ TOLERANCES = {
         "model.light_angle_deg[1]": (0.04, False),
         "model.ghosts.lens.sensor_reflectance": (0.05, True),
     },
+    # The holographic eye's focus (0.625 D: 1.6 m) and pupil from a defocused light.
+    "holographic_defocus": {
+        "model.aperture.pupil.diameter_mm": (0.02, True),
+        "model.accommodation_d": (0.01, False),  # within 0.01 D: 1.6 m to 3 %
+    },
 }
 
 
