@@ -190,7 +190,7 @@ def run_fit(
             setup.target_path,
             setup.space.size,
             setup.starts.shape[0],
-            ", ".join(setup.views),
+            views_in_order(setup.stages, setup.views),
             "ground truth known" if setup.truth else "no ground truth",
         )
         candidates = setup.candidates()
@@ -250,6 +250,11 @@ def run_fit(
     log.info("%s", best.summary())
     log.info("wrote %s (report.md, params.json, figures) in %.1f s", folder, info.wall_s)
     return folder
+
+
+def views_in_order(stages, final_views) -> str:
+    """Every stage's views, then the final fit's: ``"radial, angular then pixels"``."""
+    return " then ".join(", ".join(v) for v in [*(st.views for st in stages), final_views])
 
 
 def run_reference_fit(config: Path, *, progress: bool = True, **overrides: Any) -> Path:

@@ -176,6 +176,16 @@ def disk_report(disk):
 # the report
 
 
+def test_the_first_line_names_every_stages_views():
+    """'views radial, angular then pixels' for fits/eye_daylight.toml, not 'views pixels'."""
+    from invglare.commands.fit import views_in_order
+    from invglare.fit.stages import Stage
+
+    stage = Stage({"radial": 1.0, "angular": 1.0}, 40)
+    assert views_in_order([stage], {"pixels": 1.0}) == "radial, angular then pixels"
+    assert views_in_order([], {"pixels": 1.0, "log": 0.5}) == "pixels, log"
+
+
 def test_fit_report_files_and_recovery_with_clipped_core(disk_report):
     """Clipped core (survival-censored), 3 starts across [2, 5] mm: diameter within 0.5 %."""
     out, params, text = disk_report
