@@ -45,18 +45,24 @@ def fresnel_e(s: Float[Array, "*shape"]) -> Complex[Array, "*shape"]:
 
 
 def fresnel_kernel(
-    centre_px: np.ndarray, width_px: np.ndarray, axis: FreqAxis, alpha: Float[Array, ""]
+    centre_px, width_px, axis: FreqAxis, alpha: Float[Array, ""]
 ) -> tuple[Complex[Array, "n m"], Complex[Array, "n m"]]:
     """Near-field axis kernel: the parts of ``g`` even and odd in the interval's centre.
 
     ``g(f; c)`` over ``[c - w/2, c + w/2]`` without the common phase; ``g(f; -c) = g(-f;
     c)``, so the even part is ``(g(f; c) + g(-f; c)) / 2`` and the odd part the difference.
-    Both come from one table of ``E`` at the distinct edges ``+-(c +- w/2)``.
+    Both come from one table of ``E`` at the distinct edges ``+-(c +- w/2)`` (intervals
+    given as traced arrays: one row per edge).
     """
-    lo, hi = centre_px - width_px / 2.0, centre_px + width_px / 2.0
-    edges, where = np.unique(np.concatenate([lo, hi, -hi, -lo]), return_inverse=True)
-    where = where.reshape(4, -1)
     dtype = axis.step.dtype
+    if isinstance(centre_px, np.ndarray):
+        lo, hi = centre_px - width_px / 2.0, centre_px + width_px / 2.0
+        edges, where = np.unique(np.concatenate([lo, hi, -hi, -lo]), return_inverse=True)
+        where = where.reshape(4, -1)
+    else:
+        c, w = jnp.asarray(centre_px, dtype), jnp.asarray(width_px, dtype)
+        edges = jnp.concatenate([c - w / 2.0, c + w / 2.0, -c - w / 2.0, -c + w / 2.0])
+        where = np.arange(edges.shape[0]).reshape(4, -1)
     root = jnp.sqrt(2.0 * alpha)
     freq = axis.freq(dtype)
     s = root * (jnp.asarray(edges, dtype)[:, None] - freq[None, :] / alpha)

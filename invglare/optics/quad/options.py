@@ -22,8 +22,10 @@ from invglare.optics.quad.outline import ARC_SEGMENTS
 
 SYMMETRIES = ("auto", "none")
 
-#: Phase error (rad) float32 may reach before a sampling counts as unrepresentable.
+#: Phase error (rad) a quad's plane wave may reach before a sampling is unrepresentable.
 _PHASE_BUDGET_RAD = 1e-3
+#: Absolute error the Fresnel integrals may reach (their values are of order 1).
+_FRESNEL_BUDGET = 1e-5
 
 
 def _check_int(name: str, value, lo: int, hi: int | None = None) -> int:
@@ -130,21 +132,27 @@ def check_representable(
     """Refuse a sampling whose closed-form phases the float type cannot carry.
 
     A quad's phase ``2 pi f c`` reaches ``2 pi * cycles`` at the output's edge for a quad at
-    the window's edge; float32 keeps it to ``eps * 2 pi * cycles`` rad. The Fresnel
-    integrals' arguments ``s`` (near field) carry ``pi s^2 / 2`` likewise. Beyond
-    :data:`_PHASE_BUDGET_RAD` the result would be noise: refused, naming the limit (float64
-    through ``jax_enable_x64``, a smaller field or window).
+    the window's edge; float32 keeps it to ``eps * 2 pi * cycles`` rad, refused beyond
+    :data:`_PHASE_BUDGET_RAD`. In the near field the Fresnel integrals at ``s`` carry the
+    phase ``pi s^2 / 2`` on a tail of size ``1 / (pi s)``: an absolute error ``eps s / 2``,
+    refused beyond :data:`_FRESNEL_BUDGET`. The message names the way out (float64 through
+    ``jax_enable_x64``, a smaller field).
     """
     eps = float(np.finfo(np.float64 if jax.config.jax_enable_x64 else np.float32).eps)
     f_max = math.radians(float(output.half_field_deg)) / (shortest_wavelength_nm * 1e-6)
     half_window = 0.5 * math.sqrt(2.0) * float(grid.width_mm)
     cycles = f_max * half_window
     worst = 2.0 * math.pi * cycles * eps
+    what = f"phases reach {worst / eps:.3g} rad at the output's edge ({cycles:.4g} cycles"
+    what += " across the window)"
+    budget = _PHASE_BUDGET_RAD
     if focal_length_mm is not None:
         lam_d = shortest_wavelength_nm * 1e-6 * focal_length_mm
         s_max = math.sqrt(2.0 / lam_d) * (half_window + f_max * lam_d)
-        worst = max(worst, 0.5 * math.pi * s_max * s_max * eps)
-    if worst > _PHASE_BUDGET_RAD:
+        if 0.5 * s_max * eps / _FRESNEL_BUDGET > worst / budget:
+            worst, budget = 0.5 * s_max * eps, _FRESNEL_BUDGET
+            what = f"Fresnel integrals reach the argument {s_max:.4g}"
+    if worst > budget:
         precision = "float64" if eps < 1e-10 else "float32"
         raise PhysicsRangeError(
             f"this sampling cannot be represented in {precision}: the closed-form phases "

@@ -11,8 +11,12 @@ from __future__ import annotations
 
 import dataclasses
 import hashlib
+import math
+from types import SimpleNamespace
+from typing import NamedTuple
 
 import numpy as np
+from jaxtyping import Array
 
 from invglare.optics.quad.quadtree import QuadLayout
 
@@ -104,20 +108,31 @@ def _intervals(start: np.ndarray, size: np.ndarray, origin: int):
     return centre, distinct[:, 1].astype(np.float64), index.reshape(-1), np.sign(twice_centre)
 
 
-def make_plan(layout: QuadLayout, mirror_x: bool = False, mirror_y: bool = False) -> QuadPlan:
+def make_plan(
+    layout: QuadLayout,
+    mirror_x: bool = False,
+    mirror_y: bool = False,
+    origin: tuple[int, int] | None = None,
+) -> QuadPlan:
     """The plan of a layout: its distinct intervals, the mirrors whose odd terms are skipped.
 
     Pass the mirrors of the raster (:func:`detect_mirrors`) only when it has them: with a
-    mirror the value of the transform keeps only the part even along that axis.
+    mirror the value of the transform keeps only the part even along that axis. `origin`
+    is the (row, col) of the grid origin in the layout's raster (default its centre pixel
+    ``shape // 2``; another for a layout of a crop).
     """
     rows, cols = layout.shape
-    row_c, row_s, quad_row, sign_y = _intervals(layout.y0, layout.h, rows // 2)
-    col_c, col_s, quad_col, sign_x = _intervals(layout.x0, layout.w, cols // 2)
+    origin = (rows // 2, cols // 2) if origin is None else origin
+    parts = plan_arrays(layout.x0, layout.y0, layout.w, layout.h, origin)
+    return QuadPlan(layout=layout, mirror_x=bool(mirror_x), mirror_y=bool(mirror_y), **parts)
+
+
+def plan_arrays(x0, y0, w, h, origin: tuple[int, int]) -> dict[str, np.ndarray]:
+    """The interval arrays of quads given as pixel rectangles (see :class:`QuadPlan`)."""
+    row_c, row_s, quad_row, sign_y = _intervals(np.asarray(y0), np.asarray(h), origin[0])
+    col_c, col_s, quad_col, sign_x = _intervals(np.asarray(x0), np.asarray(w), origin[1])
     order = np.argsort(quad_row, kind="stable")
-    return QuadPlan(
-        layout=layout,
-        mirror_x=bool(mirror_x),
-        mirror_y=bool(mirror_y),
+    return dict(
         row_c=row_c,
         row_s=row_s,
         col_c=col_c,
@@ -128,3 +143,57 @@ def make_plan(layout: QuadLayout, mirror_x: bool = False, mirror_y: bool = False
         sign_x=sign_x[order].astype(np.float64),
         order=order,
     )
+
+
+class DynamicPlan(NamedTuple):
+    """A plan whose arrays are arguments of a compiled function, not constants in it.
+
+    Frame-by-frame layouts (progressive refinement) differ every frame; padded to bucket
+    sizes (:func:`dynamic_plan`), they share one compiled evaluation per bucket.
+    """
+
+    row_c: Array
+    row_s: Array
+    col_c: Array
+    col_s: Array
+    quad_row: Array
+    quad_col: Array
+    sign_y: Array
+    sign_x: Array
+
+    @property
+    def n_rows(self) -> int:
+        return int(self.row_c.shape[0])
+
+
+def bucket(n: int, smallest: int = 64) -> int:
+    """The padded size of `n`: the next power of two, at least `smallest`."""
+    return max(smallest, 1 << max(0, math.ceil(math.log2(max(n, 1)))))
+
+
+def dynamic_plan(plan, amplitudes: np.ndarray) -> tuple[DynamicPlan, np.ndarray]:
+    """A plan (a :class:`QuadPlan` or the dict of :func:`plan_arrays`) as padded arrays,
+    with its amplitudes (in the plan's order) padded by 0.
+
+    Padding quads have amplitude 0; padding rows and columns are unit intervals at 0.
+    """
+    if isinstance(plan, dict):
+        plan = SimpleNamespace(**plan, n_rows=plan["row_c"].size, n_cols=plan["col_c"].size)
+    k, r, c = plan.quad_row.size, plan.n_rows, plan.n_cols
+    kb, rb, cb = bucket(k), bucket(r), bucket(c)
+
+    def pad(a, n, value):
+        return np.concatenate([a, np.full(n - a.size, value, dtype=a.dtype)])
+
+    dyn = DynamicPlan(
+        row_c=pad(plan.row_c, rb, 0.0),
+        row_s=pad(plan.row_s, rb, 1.0),
+        col_c=pad(plan.col_c, cb, 0.0),
+        col_s=pad(plan.col_s, cb, 1.0),
+        # Padding quads go to the last row, keeping the rows sorted.
+        quad_row=pad(plan.quad_row, kb, rb - 1),
+        quad_col=pad(plan.quad_col, kb, 0),
+        sign_y=pad(plan.sign_y, kb, 0.0),
+        sign_x=pad(plan.sign_x, kb, 0.0),
+    )
+    return dyn, pad(np.asarray(amplitudes, np.float64), kb, 0.0)

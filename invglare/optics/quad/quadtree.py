@@ -159,6 +159,19 @@ class QuadLayout:
         counts = jnp.asarray(self.group_cells[self.n_unique :], means.dtype)
         return jnp.concatenate([unique, shared_sum / counts])
 
+    def intensities_numpy(self, raster: np.ndarray) -> np.ndarray:
+        """:meth:`intensities` of a concrete raster in numpy (for loops over frames)."""
+        arr = np.asarray(raster, dtype=np.float64)
+        rows, cols = self.shape
+        padded = np.zeros((self.side, self.side))
+        padded[:rows, :cols] = arr
+        c, m = self.cell, self.side // self.cell
+        means = padded if c == 1 else padded.reshape(m, c, m, c).mean(axis=(1, 3))
+        groups = self.cell_group.reshape(-1)
+        used = groups >= 0
+        sums = np.bincount(groups[used], weights=means.reshape(-1)[used], minlength=self.n_groups)
+        return sums / self.group_cells
+
     def amplitudes(self, levels: Float[Array, " groups"]) -> Float[Array, " quads"]:
         """Signed intensity of every quad, ``sign * levels[group]``, from :meth:`intensities`."""
         return levels[jnp.asarray(self.group)] * jnp.asarray(self.sign, dtype=levels.dtype)

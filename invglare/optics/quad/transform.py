@@ -93,8 +93,15 @@ def sinc(x: Float[ArrayLike, "*shape"]) -> Float[Array, "*shape"]:
     return jnp.where(small, series, direct)
 
 
-def envelopes(width_px: np.ndarray, freq: Float[Array, " m"]) -> Float[Array, "n m"]:
-    """``w sinc(f w)`` per interval: computed once per distinct width (eq. 13), then spread."""
+def envelopes(width_px, freq: Float[Array, " m"]) -> Float[Array, "n m"]:
+    """``w sinc(f w)`` per interval: computed once per distinct width (eq. 13), then spread.
+
+    Widths given as a traced array (a plan passed into a compiled function) are computed
+    one per interval.
+    """
+    if not isinstance(width_px, np.ndarray):
+        w = jnp.asarray(width_px, freq.dtype)[:, None]
+        return w * sinc(freq[None, :] * w)
     widths, which = np.unique(width_px, return_inverse=True)
     w = jnp.asarray(widths, freq.dtype)[:, None]
     return (w * sinc(freq[None, :] * w))[which.reshape(-1)]
