@@ -175,32 +175,42 @@ def _tiled_products(
     bands: dict[tuple[int, int], list] = {}
     for r0, r1, c0, c1 in tile_runs(tiles, shape):
         bands.setdefault((r0, r1), []).append((c0, c1))
-    out = []
-    for inner in inners:
-        rows = []
-        done = 0
-        for (r0, r1), runs in sorted(bands.items()):
-            if r0 > done:
-                rows.append(jnp.zeros((r0 - done, shape[1]), dtype))
-            pieces, col = [], 0
-            for c0, c1 in runs:
-                if c0 > col:
-                    pieces.append(jnp.zeros((r1 - r0, c0 - col), dtype))
-                pieces.append((kernel_t[r0:r1] @ inner[:, c0:c1]).astype(dtype))
-                col = c1
+    k = len(inners)
+    # All inners side by side: one product per run, as in the dense evaluation.
+    stacked = jnp.stack(inners, axis=1)  # (R, k, nx)
+    rows = [[] for _ in range(k)]
+    done = 0
+    for (r0, r1), runs in sorted(bands.items()):
+        if r0 > done:
+            for j in range(k):
+                rows[j].append(jnp.zeros((r0 - done, shape[1]), dtype))
+        pieces = [[] for _ in range(k)]
+        col = 0
+        for c0, c1 in runs:
+            if c0 > col:
+                for j in range(k):
+                    pieces[j].append(jnp.zeros((r1 - r0, c0 - col), dtype))
+            block = stacked[:, :, c0:c1].reshape(stacked.shape[0], -1)
+            prod = (kernel_t[r0:r1] @ block).astype(dtype).reshape(r1 - r0, k, c1 - c0)
+            for j in range(k):
+                pieces[j].append(prod[:, j])
+            col = c1
+        for j in range(k):
             if col < shape[1]:
-                pieces.append(jnp.zeros((r1 - r0, shape[1] - col), dtype))
-            rows.append(jnp.concatenate(pieces, axis=1))
-            done = r1
+                pieces[j].append(jnp.zeros((r1 - r0, shape[1] - col), dtype))
+            rows[j].append(jnp.concatenate(pieces[j], axis=1))
+        done = r1
+    out = []
+    for j in range(k):
         if done < shape[0]:
-            rows.append(jnp.zeros((shape[0] - done, shape[1]), dtype))
-        out.append(jnp.concatenate(rows, axis=0))
+            rows[j].append(jnp.zeros((shape[0] - done, shape[1]), dtype))
+        out.append(jnp.concatenate(rows[j], axis=0))
     return out
 
 
 #: Tile rows per band of the culled evaluation, and the widest gap (in tiles) bridged.
-BAND_TILES = 4
-GAP_TILES = 2
+BAND_TILES = 8
+GAP_TILES = 4
 
 
 def tile_runs(tiles: Tiles, shape: tuple[int, int]) -> list[tuple[int, int, int, int]]:
