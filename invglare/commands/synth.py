@@ -33,7 +33,7 @@ from typing import Any
 import numpy as np
 
 from invglare.config.synth import OBSERVATION_KEYS, SynthSpec, load_synth
-from invglare.errors import ConfigError, InvglareError
+from invglare.errors import ConfigError, InvglareError, prefixed
 
 log = logging.getLogger("invglare")
 
@@ -73,6 +73,9 @@ def build_truth_forward(spec: SynthSpec):
         space = ParameterSpace(params)
         space.check(forward)
         forward = space.apply(forward, jnp.asarray(list(spec.set_values.values())))
+        # Values written by path skip the readers' range checks: read the result back.
+        with prefixed(f"{spec.path} [set]"):
+            build_model(forward.model.to_config(), spec.base_dir, source=str(spec.path))
     return forward
 
 
@@ -178,7 +181,15 @@ def run_synth(specs: list[Path], out_dir: Path | None = None) -> list[Path]:
     """Synthesise every spec in turn. **Returns:** the photos written."""
     from tqdm import tqdm
 
+    from invglare.files.outputs import output_file, output_folder
+
+    if out_dir is not None:
+        output_folder(out_dir, "--out-dir")
     parsed = [load_synth(p, out_dir) for p in specs]  # every spec is checked before any work
+    for spec in parsed:
+        where = "--out-dir" if out_dir is not None else f"the folder of {spec.path}"
+        output_file(spec.out_exr, where, (".exr",))
+        output_file(spec.out_truth, where, (".json",))
     written = []
     for spec in tqdm(parsed, desc="synth", unit="photo", disable=len(parsed) < 2):
         photo, truth = synthesize(spec)

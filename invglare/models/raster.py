@@ -46,11 +46,13 @@ def build_propagator(
     propagation: str,
     method: str,
     method_options: Mapping[str, Any] | None = None,
+    beyond_band: bool = False,
 ) -> AbstractPropagator:
     """A propagator whose window holds an aperture of `extent_mm` and suits the spectrum.
 
     A quad or polygon propagator still has to be :meth:`~invglare.optics.propagator.
     AbstractPropagator.prepared` for the model's aperture (see :func:`prepared_for`).
+    `beyond_band`: see :func:`~invglare.optics.propagator.make_propagator`.
     """
     if isinstance(aperture_npix, bool) or not isinstance(aperture_npix, int) or aperture_npix < 8:
         raise PhysicsRangeError(f"aperture_npix must be an integer >= 8, got {aperture_npix}")
@@ -78,6 +80,8 @@ def build_propagator(
         method=method,
         method_options=method_options,
         wavelengths_nm=tuple(computed),
+        longest_wavelength_nm=max(computed),
+        beyond_band=beyond_band,
     )
     if propagator.method == "fft" and len(computed) > 1:
         # "auto" chose the FFT for the first wavelength; the others need other scales.
@@ -91,6 +95,7 @@ def build_propagator(
             window_mm=window_mm,
             propagation=propagation,
             method="mft",
+            beyond_band=beyond_band,
         )
     return propagator
 

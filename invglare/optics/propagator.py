@@ -16,6 +16,8 @@ of :mod:`invglare.optics.fraunhofer`).
 | `QuadFraunhofer`| `fraunhofer`, `quad`    | closed-form transform of the raster's quads     |
 | `QuadFresnel`   | `fresnel`, `quad`       | Fresnel integrals per quad: no chirp sampling   |
 | `PolygonFraunhofer` | `fraunhofer`, `polygon` | exact transforms of the shapes themselves   |
+| `FresnelTransfer` | `fresnel`, `transfer` | eq. 3 on the image plane by the Fresnel kernel: |
+|                 |                         | alias-free at short distances (the eye's 17 mm) |
 
 The quad and polygon methods (:mod:`invglare.optics.quad`, Scandolo, Lee & Eisemann 2018)
 decide a structure on concrete values (the quadtree of a raster; which shapes overlap)
@@ -48,8 +50,9 @@ from jaxtyping import Array, ArrayLike, Float, Inexact
 from invglare._core.checks import check_positive, choose, is_concrete
 from invglare._core.grids import AngularGrid, ApertureGrid
 from invglare.errors import ConfigError, PhysicsRangeError
+from invglare.optics.fourier import pad_centred
 from invglare.optics.fraunhofer import fraunhofer_mft, intensity_fft
-from invglare.optics.fresnel import fresnel_phase
+from invglare.optics.fresnel import fresnel_near_field, fresnel_phase, near_field_fft_npix
 from invglare.optics.quad import prepare
 from invglare.optics.quad.farfield import quad_far_field
 from invglare.optics.quad.nearfield import fresnel_kernel, quad_near_field
@@ -63,7 +66,7 @@ from invglare.optics.quad.plan import QuadPlan
 from invglare.optics.quad.transform import box_kernel, unfold
 
 PROPAGATIONS = ("fraunhofer", "fresnel")
-METHODS = ("auto", "fft", "mft", "quad", "polygon")
+METHODS = ("auto", "fft", "mft", "transfer", "quad", "polygon")
 #: The methods that take options (a ``[model.<method>]`` table).
 METHOD_OPTIONS = {"quad": QuadOptions, "polygon": PolygonOptions}
 
@@ -128,8 +131,15 @@ class FraunhoferFFT(AbstractPropagator):
 
 
 class FraunhoferMFT(AbstractPropagator):
-    """Far field by matrix Fourier transform: any output pixel scale and field."""
+    """Far field by matrix Fourier transform: any output pixel scale and field.
 
+    With `core_npix` (static) below the output's size, the transform covers only the
+    central ``core_npix`` pixels, the raster's alias-free band, and the rest of the output
+    is 0: what lies beyond is left to a closed-form term of the model (the wide-angle
+    scatter of :mod:`invglare.optics.particles`).
+    """
+
+    core_npix: int | None = eqx.field(static=True, default=None, kw_only=True)
     propagation: ClassVar[str] = "fraunhofer"
     method: ClassVar[str] = "mft"
 
@@ -142,7 +152,10 @@ class FraunhoferMFT(AbstractPropagator):
         return {}
 
     def __call__(self, field, wavelength_nm):
-        return fraunhofer_mft(field, self.grid, wavelength_nm, self.output)
+        if self.core_npix is None or self.core_npix >= self.output.npix:
+            return fraunhofer_mft(field, self.grid, wavelength_nm, self.output)
+        core = AngularGrid(self.core_npix, self.output.pixel_scale_deg)
+        return pad_centred(fraunhofer_mft(field, self.grid, wavelength_nm, core), self.output.npix)
 
 
 class FresnelFFT(AbstractPropagator):
@@ -317,12 +330,40 @@ class PolygonFraunhofer(AbstractPropagator):
         return self.polygon.to_dict()
 
 
+class FresnelTransfer(AbstractPropagator):
+    """Eq. 3 of Ritschel et al. at a short distance, on the image plane, without aliasing.
+
+    The aperture convolved with the Fresnel kernel (:func:`~invglare.optics.fresnel.
+    fresnel_near_field`): output pixels are the aperture pitch on the image plane,
+    ``pitch / focal_length`` rad, the same at every wavelength. It needs the transfer
+    function sampled (``fft_npix * pitch^2 >= lambda d``), which short distances make easy;
+    the single-FFT form (:class:`FresnelFFT`) needs the phase ``E`` resolved instead,
+    which long distances make easy.
+    """
+
+    fft_npix: int = eqx.field(static=True, kw_only=True)
+    propagation: ClassVar[str] = "fresnel"
+    method: ClassVar[str] = "transfer"
+    takes: ClassVar[str] = "raster"
+
+    def prepared(self, field):
+        return self
+
+    def options(self):
+        return {}
+
+    def __call__(self, field, wavelength_nm):
+        return fresnel_near_field(
+            field, self.grid, wavelength_nm, self.focal_length_mm, self.fft_npix, self.output.npix
+        )
+
+
 #: (propagation, method) of the config → the final class.
 PROPAGATOR_CLASSES: dict[tuple[str, str], type[AbstractPropagator]] = {
     (cls.propagation, cls.method): cls
     for cls in (
         FraunhoferFFT, FraunhoferMFT, FresnelFFT, FresnelMFT, QuadFraunhofer, QuadFresnel,
-        PolygonFraunhofer,
+        PolygonFraunhofer, FresnelTransfer,
     )
 }  # fmt: skip
 
@@ -373,6 +414,8 @@ def make_propagator(
     method: str = "auto",
     method_options: Mapping[str, Any] | None = None,
     wavelengths_nm: tuple[float, ...] | None = None,
+    longest_wavelength_nm: float | None = None,
+    beyond_band: bool = False,
 ) -> AbstractPropagator:
     """The propagator for a sampling, refusing ones that would alias.
 
@@ -384,21 +427,29 @@ def make_propagator(
       pixel scale ``lambda / (fft_npix * pitch)``).
     - `shortest_wavelength_nm`: the shortest wavelength an MFT will evaluate; the
       output field must stay within its alias-free band.
+    - `longest_wavelength_nm`: the longest wavelength evaluated (``"transfer"`` samples
+      its transfer function for it); default the larger of the two above.
+    - `beyond_band`: let a Fraunhofer MFT output reach beyond the raster's alias-free
+      band: the transform covers the band's pixels (`FraunhoferMFT.core_npix`) and the
+      model fills the rest in closed form; otherwise such an output is refused.
     - `npix`, `pixel_scale_deg`: the output grid; without a pixel scale, the FFT's
       native one (with ``fft_npix = max(npix, 2 * aperture_npix)``).
     - `propagation`: ``"fraunhofer"`` or ``"fresnel"``.
     - `method`: ``"fft"``, ``"mft"`` or ``"auto"`` (the FFT when it produces the
       requested pixel scale exactly, else the MFT); ``"quad"`` (the raster's quads in
-      closed form, far or near field) or ``"polygon"`` (the shapes' exact transforms).
+      closed form, far or near field); ``"polygon"`` (the shapes' exact transforms);
+      ``"transfer"`` (Fresnel only) for the image-plane near field of
+      :class:`FresnelTransfer`, whose pixels are ``pitch / focal_length_mm`` rad (a
+      `pixel_scale_deg` must equal that).
     - `method_options`: the ``[model.quad]`` / ``[model.polygon]`` table
       (:class:`~invglare.optics.quad.options.QuadOptions`, `PolygonOptions`).
     - `wavelengths_nm`: every wavelength the propagator will evaluate (quad culling is
       decided for them; default the FFT wavelength and the shortest one).
 
     **Returns:** a :class:`FraunhoferFFT`, :class:`FraunhoferMFT`, :class:`FresnelFFT`,
-    :class:`FresnelMFT`, :class:`QuadFraunhofer`, :class:`QuadFresnel` or
-    :class:`PolygonFraunhofer` (the last three still to be :meth:`~AbstractPropagator.
-    prepared` for an aperture).
+    :class:`FresnelMFT`, :class:`FresnelTransfer`, :class:`QuadFraunhofer`,
+    :class:`QuadFresnel` or :class:`PolygonFraunhofer` (the last three still to be
+    :meth:`~AbstractPropagator.prepared` for an aperture).
 
     **Example:**
 
@@ -428,6 +479,18 @@ def make_propagator(
             method, propagation, ApertureGrid.from_width(aperture_npix, window_mm),
             AngularGrid(npix, pixel_scale_deg), focal_length_mm, tuple(waves), method_options,
         )  # fmt: skip
+    if method == "transfer":
+        return _transfer_propagator(
+            window_mm=window_mm,
+            focal_length_mm=focal_length_mm,
+            longest_wavelength_nm=max(
+                fft_wavelength_nm, shortest_wavelength_nm, longest_wavelength_nm or 0.0
+            ),
+            npix=npix,
+            pixel_scale_deg=pixel_scale_deg,
+            aperture_npix=aperture_npix,
+            propagation=propagation,
+        )
     if pixel_scale_deg is None:
         if method == "mft":
             raise ConfigError("method = 'mft' needs pixel_scale_deg")
@@ -463,11 +526,17 @@ def make_propagator(
                 f"aperture raster resolves; use aperture_npix >= {needed}, a longer "
                 "focal_length_mm, or propagation = 'fraunhofer'"
             )
+    core_npix = None
     if method == "mft":
         half_field = math.radians(float(output.half_field_deg))
+        band = math.degrees(0.5 / pitch * shortest_wavelength_nm * 1e-6)
+        if beyond_band and propagation == "fraunhofer" and float(output.half_field_deg) > band:
+            # The largest centred square inside the band, of the output's parity.
+            core_npix = 2 * int(band / float(output.pixel_scale_deg) * (1 + 1e-6)) + npix % 2
+            core_npix = max(core_npix - (core_npix - npix) % 2, 1)
         # A relative margin: a field exactly at the band edge (the FFT's own) is fine
         # and must not be refused for a float32 rounding error.
-        if half_field / (shortest_wavelength_nm * 1e-6) > 0.5 / pitch * (1 + 1e-6):
+        elif half_field / (shortest_wavelength_nm * 1e-6) > 0.5 / pitch * (1 + 1e-6):
             supported = math.degrees(0.5 / pitch * shortest_wavelength_nm * 1e-6)
             raise PhysicsRangeError(
                 f"the output field reaches {float(output.half_field_deg):.4g} deg but the "
@@ -479,4 +548,41 @@ def make_propagator(
     grid = ApertureGrid.from_width(aperture_npix, window_mm)
     if method == "fft":
         return cls(grid=grid, output=output, focal_length_mm=focal_length_mm, fft_npix=fft_npix)
+    if core_npix is not None:
+        return cls(
+            grid=grid, output=output, focal_length_mm=focal_length_mm, core_npix=core_npix
+        )
     return cls(grid=grid, output=output, focal_length_mm=focal_length_mm)
+
+
+def _transfer_propagator(
+    *,
+    window_mm: float,
+    focal_length_mm: float,
+    longest_wavelength_nm: float,
+    npix: int,
+    pixel_scale_deg: float | None,
+    aperture_npix: int,
+    propagation: str,
+) -> FresnelTransfer:
+    """The :class:`FresnelTransfer` of a sampling (its pixel scale is the grid's, not chosen)."""
+    if propagation != "fresnel":
+        raise ConfigError(
+            "method = 'transfer' is the Fresnel near field (propagation = 'fresnel'); the "
+            "far field takes 'fft', 'mft' or 'auto'"
+        )
+    grid = ApertureGrid.from_width(aperture_npix, window_mm)
+    native_deg = math.degrees(window_mm / aperture_npix / focal_length_mm)
+    if pixel_scale_deg is not None and abs(pixel_scale_deg - native_deg) > 1e-6 * native_deg:
+        raise ConfigError(
+            f"method = 'transfer' puts the PSF on the image plane at the aperture pitch, "
+            f"{native_deg:.6g} deg per pixel here (pitch / focal_length_mm); pixel_scale_deg = "
+            f"{pixel_scale_deg:g} differs: drop it, or change window_mm / aperture_npix"
+        )
+    # The transfer function is sampled for the longest wavelength it meets (its phase
+    # grows with lambda d).
+    fft_npix = near_field_fft_npix(grid, longest_wavelength_nm, focal_length_mm, npix)
+    output = AngularGrid(npix, native_deg)
+    return FresnelTransfer(
+        grid=grid, output=output, focal_length_mm=focal_length_mm, fft_npix=fft_npix
+    )
