@@ -5,8 +5,10 @@ aperture whole (one FFT of the aperture times the sampled Fresnel term, eq. 3). 
 the hippus and moving particles change only part of the aperture from one frame to the
 next: :func:`progressive_psf_sequence` transforms the first frame's quads and then only the
 quads of each frame's difference (:class:`~invglare.optics.quad.progressive.
-ProgressiveQuads`), in the near field of the same distance by closed-form Fresnel
-integrals (no chirp to sample), on the model's own output grid, and makes the spectral
+ProgressiveQuads`), in the near field of the model's Fresnel term by closed-form Fresnel
+integrals (no chirp to sample; ``fresnel = "none"``: the far field), on the model's own
+output grid (at the retina's 17 mm the float32 phases are refused with the reason: enable
+float64), and makes the spectral
 image by the model's scaled copies. The frames are those of the model's dynamics
 (:meth:`~invglare.models.temporal.TemporalGlare.aperture_sequence`, one compiled scan).
 
@@ -47,11 +49,18 @@ def progressive_psf_sequence(
     prop, spec = model.propagator, model.spectrum
     run = eqx.filter_jit(lambda m, lum: m.aperture_sequence(n_frames, lum))
     _, apertures = run(model, luminance_cd_m2)
+    # The distance of the model's Fresnel term E: the retina (on the model's image-plane
+    # grid), the effective distance (at the FFT's native scale), or none (far field).
+    distance = {
+        "retina": float(prop.focal_length_mm),
+        "effective": model.fresnel_distance_mm,
+        "none": None,
+    }[model.fresnel]
     progressive = ProgressiveQuads(
         prop.grid,
         prop.output,
         spec.reference_wavelength_nm,
-        float(prop.focal_length_mm),
+        None if distance is None else float(distance),
         refresh_every=refresh_every,
     )
     if model.is_spectral:

@@ -4,9 +4,10 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from test_temporal import NPIX, moving_dynamics, small_eye
+from test_temporal import NPIX, effective, moving_dynamics, small_eye
 
 from invglare.aperture.eye import EyeAperture, Pupil
+from invglare.errors import PhysicsRangeError
 from invglare.models.quad_sequence import progressive_psf_sequence
 from invglare.models.temporal import TemporalGlare
 from invglare.optics.quad import ProgressiveQuads
@@ -20,7 +21,7 @@ def test_progressive_frames_of_the_temporal_eye():
     chirp-sampled FFT frames where the eye is open to the sampling of this 64 px raster
     (measured 7 % of each frame's peak: the FFT samples the Fresnel term at pixel centres,
     the quads integrate it; nearly closed, a few pixels open, 12-50 %)."""
-    model = TemporalGlare.build(small_eye(), moving_dynamics(), npix=NPIX, key=11)
+    model = effective(small_eye(), moving_dynamics(), npix=NPIX, key=11)
     psfs, stats = progressive_psf_sequence(model, 12)
     _, ref = model.psf_sequence(12)
     ref = np.asarray(ref)
@@ -35,13 +36,17 @@ def test_progressive_frames_of_the_temporal_eye():
 
 
 def test_progressive_mono_frames_equal_fresh_quad_evaluations():
-    """Pupil only, monochrome: each progressive frame is its aperture's quad near field."""
+    """Pupil only, monochrome: each progressive frame is its aperture's quad near field at
+    the model's effective Fresnel distance; at the retina's 17 mm float32 is refused."""
     eye = EyeAperture(pupil=Pupil(5.0))
-    model = TemporalGlare.build(eye, moving_dynamics(), npix=32, key=3, wavelengths_nm=575.0)
+    kw = dict(npix=32, key=3, wavelengths_nm=575.0)
+    with pytest.raises(PhysicsRangeError, match="float64"):
+        progressive_psf_sequence(TemporalGlare.build(eye, moving_dynamics(), **kw), 2)
+    model = effective(eye, moving_dynamics(), **kw)
     psfs, _ = progressive_psf_sequence(model, 6)
     _, apertures = model.aperture_sequence(6)
     prop = model.propagator
-    fresh = ProgressiveQuads(prop.grid, prop.output, 575.0, float(prop.focal_length_mm))
+    fresh = ProgressiveQuads(prop.grid, prop.output, 575.0, model.fresnel_distance_mm)
     for k, aperture in enumerate(np.asarray(apertures)):
         ref = fresh.full_psf(aperture)
         assert np.max(np.abs(psfs[k] - ref)) <= 1e-5 * max(ref.max(), 1e-30)

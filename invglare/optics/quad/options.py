@@ -145,18 +145,17 @@ def check_representable(
     worst = 2.0 * math.pi * cycles * eps
     what = f"phases reach {worst / eps:.3g} rad at the output's edge ({cycles:.4g} cycles"
     what += " across the window)"
-    budget = _PHASE_BUDGET_RAD
+    budget, unit = _PHASE_BUDGET_RAD, " rad"
     if focal_length_mm is not None:
         lam_d = shortest_wavelength_nm * 1e-6 * focal_length_mm
         s_max = math.sqrt(2.0 / lam_d) * (half_window + f_max * lam_d)
         if 0.5 * s_max * eps / _FRESNEL_BUDGET > worst / budget:
-            worst, budget = 0.5 * s_max * eps, _FRESNEL_BUDGET
+            worst, budget, unit = 0.5 * s_max * eps, _FRESNEL_BUDGET, ""
             what = f"Fresnel integrals reach the argument {s_max:.4g}"
     if worst > budget:
         precision = "float64" if eps < 1e-10 else "float32"
         raise PhysicsRangeError(
-            f"this sampling cannot be represented in {precision}: the closed-form phases "
-            f"reach {worst / eps:.3g} rad at the output's edge ({cycles:.4g} cycles across "
-            f"the window), which {precision} keeps only to {worst:.2g} rad; lower npix or "
+            f"this sampling cannot be represented in {precision}: the closed-form {what}, "
+            f"which {precision} keeps only to {worst:.2g}{unit}; lower npix or "
             "pixel_scale_deg" + ("" if eps < 1e-10 else ", or enable float64 (jax_enable_x64)")
         )
