@@ -106,6 +106,7 @@ def test_kakimoto_camera_with_the_quad_method():
         KakimotoGlare.build(camera, method="quad", masking="position", **kw)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("method", ["quad", "polygon"])
 def test_config_round_trip_with_method_options(method):
     table = {"quad": {"cull_below": 1e-6, "base_level": 0}, "polygon": {"arc_segments": 8}}
@@ -134,6 +135,7 @@ def test_config_round_trip_with_method_options(method):
         build_model(typo)
 
 
+@pytest.mark.slow
 def test_polygon_pieces_of_every_analytic_shape():
     """A rounded hexagon, a capsule across it (the part outside is the overlap residue) and
     a disk inside it (counted twice by the sum of transforms: the residue takes it off)

@@ -204,6 +204,7 @@ def test_square_near_field_matches_fresnel_integrals_to_1e4_of_peak(fresnel_numb
 # ------------------------------------------------------------------------------ culling
 
 
+@pytest.mark.slow
 def test_culling_loses_no_more_than_its_threshold_and_keeps_gradients_exact():
     """Heptagon, 128 px raster to a 256 px output reaching its Nyquist angle, culled at
     1e-5 of the peak: 63 % of the tiles kept, the culled pixels hold less than that
