@@ -34,6 +34,7 @@ from invglare.bench.cases import Case
 from invglare.bench.fit import FIT_CASES
 from invglare.bench.holographic_cases import HOLOGRAPHIC_CASES, paper_markdown
 from invglare.bench.peer_cases import PEER_CASES, cpu_info
+from invglare.bench.quad_cases import QUAD_CASES, quad_markdown
 from invglare.bench.sample import SAMPLE_CASES
 from invglare.bench.temporal_cases import TEMPORAL_CASES, stage_markdown
 from invglare.bench.timing import load_1m, measure
@@ -50,13 +51,15 @@ BUDGET_S = 20.0
 REFERENCES = ("fft_jax",)
 #: Every per-size case: the static models, the temporal model's frame pipeline, the
 #: veiling series against the ghost count, the holographic eye against the paper's rows,
-#: and the torch layer against the same JAX call.
+#: the torch layer against the same JAX call, and the quad-based transforms against the
+#: paper's tables.
 CASES: tuple[Case, ...] = (
     *STATIC_CASES,
     *TEMPORAL_CASES,
     *VEILING_CASES,
     *HOLOGRAPHIC_CASES,
     *TORCH_CASES,
+    *QUAD_CASES,
 )
 
 #: Header notes of bench.md (also in bench.json's meta).
@@ -402,7 +405,7 @@ def render_markdown(records: list[dict], meta: dict, fit_records: list[dict] | N
                 f"| {_num(r.get('first_call_s'), '.2f')} | {r.get('repeats', '')} "
                 f"| {_num(r.get('cpu_per_wall'), '.2f')} | {_num(r.get('load_1m'), '.1f')} |"
             )
-        for section in (stage_markdown, paper_markdown, overhead_markdown):
+        for section in (stage_markdown, paper_markdown, overhead_markdown, quad_markdown):
             extra = section(records)
             lines += ["", *extra] if extra else []
         lines += ["", "Cases:", ""]
