@@ -14,11 +14,40 @@ from pathlib import Path
 from typing import Annotated
 
 import typer
+import typer.core
 
 from invglare._core.allocator import retain_freed_memory
 from invglare.errors import InvglareError
 
+#: The click (or typer's own copy of click) exception behind every usage error.
+_CLICK_ERROR = next(c for c in typer.BadParameter.__mro__ if c.__name__ == "ClickException")
+
+
+class _OneLineErrors(typer.core.TyperGroup):
+    """Usage errors (an option that is not an integer, an unknown option) as one line, like
+    every other error of the command, instead of a framed panel."""
+
+    def main(self, args=None, prog_name=None, complete_var=None, standalone_mode=True, **extra):
+        if not standalone_mode:
+            return super().main(args, prog_name, complete_var, standalone_mode=False, **extra)
+        try:
+            rv = super().main(args, prog_name, complete_var, standalone_mode=False, **extra)
+        except _CLICK_ERROR as err:
+            if type(err).__name__ == "NoArgsIsHelpError":  # bare `invglare`: the help
+                err.show()
+                sys.exit(err.exit_code)
+            ctx = getattr(err, "ctx", None)
+            where = f" (see {ctx.command_path} --help)" if ctx is not None else ""
+            typer.echo(f"invglare: error: {err.format_message()}{where}", err=True)
+            sys.exit(err.exit_code)
+        except typer.Abort:
+            typer.echo("invglare: aborted", err=True)
+            sys.exit(1)
+        sys.exit(rv if isinstance(rv, int) else 0)
+
+
 app = typer.Typer(
+    cls=_OneLineErrors,
     name="invglare",
     help="Differentiable glare models: PSFs of eyes and cameras, fitted to photos.",
     no_args_is_help=True,
@@ -103,7 +132,13 @@ def render(
         ),
     ] = Path("glare.png"),
     mode: Annotated[
-        str, typer.Option(help="convolve (whole frame) or billboard (bright pixels only).")
+        str,
+        typer.Option(
+            help="convolve (whole frame), billboard (linear PSFs at the bright pixels, then "
+            "--tonemap) or kakimoto (Kakimoto et al.'s compositing: each glare tone-mapped by "
+            "the sigmoid into a billboard, scaled by its pixel, blended onto the scene under "
+            "--tonemap; black stays black)."
+        ),
     ] = "convolve",
     threshold: Annotated[
         float | None,

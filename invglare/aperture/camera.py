@@ -43,7 +43,12 @@ from invglare._core.grids import ApertureGrid
 from invglare.aperture._checks import check_finite
 from invglare.aperture._plain import plain
 from invglare.aperture.shapes.coverage import strip_coverage
-from invglare.aperture.shapes.primitives import RegularPolygon
+from invglare.aperture.shapes.primitives import (
+    ImageMask,
+    RegularPolygon,
+    shifted_image_transmission,
+)
+from invglare.aperture.shapes.schema import shape_to_config
 from invglare.errors import ConfigError, PhysicsRangeError
 
 __all__ = [
@@ -489,6 +494,12 @@ class CameraAperture(eqx.Module):
       None.
     - `dust`: :class:`Dust` on the front element, or None. It sits at the lens, so it
       is part of the pupil and does not slide with the light direction.
+    - `obstacle_image`: an :class:`~invglare.aperture.ImageMask` in the obstacle plane
+      (any picture of a filter or an obstacle in front of the lens), or None; it
+      multiplies the filter by ``1 - coverage`` (``role = "block"``: white passes) and
+      slides with the light like it.
+    - `pupil_image`: an :class:`~invglare.aperture.ImageMask` (``role = "open"``: white
+      passes) multiplying the diaphragm's opening, or None: a diaphragm of any shape.
 
     Parameters are addressed by path, e.g.
     ``eqx.tree_at(lambda c: c.diaphragm.f_number, camera, 5.6)``.
@@ -508,6 +519,8 @@ class CameraAperture(eqx.Module):
     diaphragm: Diaphragm
     filter: CrossScreen | None = None
     dust: Dust | None = None
+    obstacle_image: ImageMask | None = None
+    pupil_image: ImageMask | None = None
 
     def __check_init__(self):
         if not isinstance(self.diaphragm, Diaphragm):
@@ -520,10 +533,18 @@ class CameraAperture(eqx.Module):
             )
         if self.dust is not None and not isinstance(self.dust, Dust):
             raise ConfigError(f"camera dust must be a Dust or None, got {type(self.dust).__name__}")
+        for name in ("obstacle_image", "pupil_image"):
+            value = getattr(self, name)
+            if value is not None and not isinstance(value, ImageMask):
+                raise ConfigError(
+                    f"camera {name} must be an ImageMask or None, got {type(value).__name__}"
+                )
 
     def pupil_transmission(self, grid: ApertureGrid) -> Float[Array, "n n"]:
         """Amplitude transmission of the diaphragm opening, dimmed by dust."""
         t = self.diaphragm.coverage(grid)
+        if self.pupil_image is not None:
+            t = t * self.pupil_image.coverage(grid)
         if self.dust is not None:
             t = t * (1.0 - self.dust.coverage(grid))
         return t
@@ -531,10 +552,16 @@ class CameraAperture(eqx.Module):
     def obstacle_transmission(
         self, grid: ApertureGrid, shift_mm: Float[ArrayLike, " 2"] = (0.0, 0.0)
     ) -> Float[Array, "n n"]:
-        """The filter pattern translated by `shift_mm` = (x, y) mm; all ones without a filter."""
+        """The filter pattern (times the obstacle image) translated by `shift_mm` = (x, y) mm.
+
+        All ones without a filter or image.
+        """
+        out = jnp.ones((grid.npix, grid.npix), dtype=_grid_dtype(grid))
+        if self.obstacle_image is not None:
+            out = out * shifted_image_transmission(self.obstacle_image, grid, shift_mm)
         if self.filter is None:
-            return jnp.ones((grid.npix, grid.npix), dtype=_grid_dtype(grid))
-        return self.filter.transmission(grid, shift_mm)
+            return out
+        return out * self.filter.transmission(grid, shift_mm)
 
     def transmission(self, grid: ApertureGrid) -> Float[Array, "n n"]:
         """The whole aperture, filter unshifted: ``t_o * P`` (the fixed mask of eq. 5)."""
@@ -602,4 +629,8 @@ def camera_to_config(camera: CameraAperture) -> dict[str, Any]:
             "octaves": int(dust.octaves),
             "edge_softness": float(dust.edge_softness),
         }
+    for name in ("obstacle_image", "pupil_image"):
+        image = getattr(camera, name)
+        if image is not None:
+            table[name] = {k: v for k, v in shape_to_config(image).items() if k != "kind"}
     return table

@@ -252,9 +252,13 @@ def _kakimoto_camera_rgb(n: int):
     from invglare.aperture.camera import CameraAperture, CrossScreen, Diaphragm
     from invglare.models.kakimoto import KakimotoGlare
 
+    diaphragm = Diaphragm(6, f_number=8.0, focal_length_mm=50.0)
+    # 0.2 mm lines, or at tiny sizes the finest spacing the N/2 raster resolves (the model
+    # refuses a filter its raster aliases; the cost does not depend on the spacing).
+    pitch = 2.0 * diaphragm.extent_radius_mm() / (n // 2 - 4)
     camera = CameraAperture(
-        Diaphragm(6, f_number=8.0, focal_length_mm=50.0),
-        filter=CrossScreen((0.0, 90.0), spacing_mm=0.2, duty_cycle=0.1),
+        diaphragm,
+        filter=CrossScreen((0.0, 90.0), spacing_mm=max(0.2, 2.5 * pitch), duty_cycle=0.1),
     )
     model = KakimotoGlare.build(
         camera, focal_length_mm=50.0, obstacle_distance_mm=20.0, npix=n, aperture_npix=n // 2

@@ -20,6 +20,7 @@ from __future__ import annotations
 import datetime as dt
 import gc
 import logging
+import math
 import os
 import platform
 import time
@@ -171,12 +172,23 @@ def run_bench(
     **Raises:** `ConfigError` for bad sizes or patterns; `RuntimeError` naming the cases
     that failed (after writing the reports of the others).
     """
+    from invglare._core.memory import check_memory
     from invglare.files.atomic import write_json_atomic, write_text_atomic
+    from invglare.files.outputs import output_folder
 
     if not sizes or any(n < 16 or n % 2 for n in sizes):
-        raise ConfigError(f"bench sizes must be even and >= 16, got {sizes}")
+        raise ConfigError(f"--sizes must be even and >= 16, got {sizes}")
     if repeats < 1:
-        raise ConfigError(f"bench repeats must be >= 1, got {repeats}")
+        raise ConfigError(f"--repeats must be >= 1, got {repeats}")
+    if not (math.isfinite(budget_s) and budget_s > 0):
+        raise ConfigError(f"--budget-s must be a finite number of seconds > 0, got {budget_s}")
+    if fit_npix < 16:
+        raise ConfigError(f"--fit-npix must be >= 16, got {fit_npix}")
+    # A case holds a few complex N^2 buffers (field, transform, PSF) at once.
+    check_memory(
+        4 * 8.0 * max(sizes) ** 2, f"the benchmark at N = {max(sizes)} (--sizes {max(sizes)})"
+    )
+    output_folder(out_dir, "--out-dir")
     cases, fits = select(patterns, skip)
     out_dir = Path(out_dir)
     partial = out_dir / "bench.partial.json"

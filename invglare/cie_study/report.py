@@ -172,8 +172,7 @@ def write_gsf_report(
     previous report). `reference` says in words what was fitted (the CIE's age and
     pigmentation, or the file). **Returns:** the folder.
     """
-    from invglare.files.atomic import dumps_json
-    from invglare.fit.report import atomic_directory
+    from invglare.files.atomic import atomic_directory, dumps_json
 
     setup = result.setup
     beyond = (

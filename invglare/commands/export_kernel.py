@@ -60,8 +60,13 @@ def _check_options(
     fov_deg: float | None,
     viewport: tuple[int, int] | None,
 ) -> None:
-    if out.suffix.lower() != ".exr":
-        raise ConfigError(f"--out must be an OpenEXR file (.exr), got {out.name!r}")
+    from invglare.commands import options
+    from invglare.files.outputs import output_file
+
+    output_file(out, "--out", (".exr",))
+    options.positive(pixel_scale_deg, "--pixel-scale-deg")
+    if fov_deg is not None and not (math.isfinite(fov_deg) and 0 < fov_deg < 180):
+        raise PhysicsRangeError(f"--fov-deg must lie in (0, 180) degrees, got {fov_deg!r}")
     if fov_deg is not None and viewport is None:
         raise ConfigError("--fov-deg needs --viewport (the width it spans)")
     if fov_deg is not None and pixel_scale_deg is not None:
@@ -90,9 +95,13 @@ def run_export_kernel(
     `NumericalError` for a non-finite PSF, `PhysicsRangeError` when an Unreal kernel's
     brightest pixel is not its centre.
     """
+    from invglare.commands import options
     from invglare.render.kernels import check_kernel_request
 
-    name = check_kernel_request(target, npix)
+    with options.named("--for"):
+        name = check_kernel_request(target)
+    with options.named("--npix"):
+        check_kernel_request(name, npix)
     view = parse_viewport(viewport)
     out = Path(out)
     _check_options(out, pixel_scale_deg, fov_deg, view)
@@ -101,11 +110,12 @@ def run_export_kernel(
     from invglare.config.model import build_model
     from invglare.files.exr import write_exr
     from invglare.files.toml import load_toml
-    from invglare.optics.spectral import parse_wavelengths
     from invglare.render import kernels
 
+    lams = options.wavelengths(wavelengths)
+    if npix is not None:  # the kernel is RGB, resampled from a PSF at least as large
+        options.raster(npix, "--npix", channels=3, copies=4)
     config = load_toml(config_path)
-    lams = None if wavelengths is None else parse_wavelengths(wavelengths)
     model = build_model(
         config, base_dir=Path(config_path).parent, wavelengths_nm=lams, source=str(config_path)
     )

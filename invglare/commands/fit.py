@@ -150,18 +150,34 @@ def run_fit(
     import jax
 
     from invglare.cie_study.config import is_reference_fit
+    from invglare.commands import options
     from invglare.config.fit import load_fit
-    from invglare.config.photo_fit import fit_and_report
+    from invglare.files.atomic import folder_lock
+    from invglare.files.outputs import output_folder
     from invglare.files.toml import load_toml
 
+    options.count(n_starts, "--n-starts")
+    options.count(max_steps, "--max-steps")
+    if out_dir is not None:
+        output_folder(out_dir, "--out-dir", replaced=True)
     if is_reference_fit(load_toml(config)):
         return run_reference_fit(
             config, out_dir=out_dir, n_starts=n_starts, max_steps=max_steps, progress=progress
         )
     t0 = time.perf_counter()
-    with jax.enable_x64(True):
-        with logged_deprecations(config):
-            setup = load_fit(config, out_dir=out_dir, n_starts=n_starts, max_steps=max_steps)
+    with jax.enable_x64(True), logged_deprecations(config):
+        setup = load_fit(config, out_dir=out_dir, n_starts=n_starts, max_steps=max_steps)
+    option = "--out-dir" if out_dir is not None else "fit.out_dir"
+    output_folder(setup.out_dir, option, replaced=True)
+    # One run per report folder, from before the fit until its report is in place.
+    with folder_lock(setup.out_dir, option=option):
+        return _fit_and_report(setup, t0, progress)
+
+
+def _fit_and_report(setup, t0: float, progress: bool) -> Path:
+    """The fit of a loaded setup, and its report (the folder's lock held)."""
+    from invglare.config.photo_fit import fit_and_report
+
     log.info(
         "fitting %s: %d free parameters, %d starts, views %s; %s",
         setup.target_path,

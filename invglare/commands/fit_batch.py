@@ -80,21 +80,23 @@ def run_fit_batch(
     **Raises:** :class:`~invglare.errors.ConfigError` (before any fit) for bad options,
     photos that cannot be found, a bad config, or a scheduler that cannot be reached.
     """
+    from invglare.commands import options
     from invglare.config.batch import read_photos
     from invglare.config.fit import SECTIONS, is_reference_fit, read_fit_section
-    from invglare.config.photo_fit import PhotoFits
     from invglare.config.section import check_sections
     from invglare.errors import ConfigError
+    from invglare.files.atomic import folder_lock
+    from invglare.files.outputs import output_folder
     from invglare.files.toml import load_toml
     from invglare.fit import batch as engine
-    from invglare.fit.batch_figures import population_figures
-    from invglare.fit.batch_table import collect_rows, write_table
 
     t0 = time.perf_counter()
-    if int(vmap) != vmap or vmap < 1:
-        raise ConfigError(f"--vmap must be an integer >= 1, got {vmap!r}")
-    if workers is not None and workers < 1:
-        raise ConfigError(f"--workers must be >= 1, got {workers}")
+    options.count(vmap, "--vmap")
+    options.count(workers, "--workers")
+    options.count(n_starts, "--n-starts")
+    options.count(max_steps, "--max-steps")
+    if out_dir is not None:
+        output_folder(out_dir, "--out-dir")
     if scheduler is not None:
         engine.check_address(scheduler)
         if workers is not None:
@@ -110,16 +112,35 @@ def run_fit_batch(
     jobs = read_photos(photos)
     name, root = read_fit_section(tables, config, out_dir)
     batch_dir = root / "batch"
+    option = "--out-dir" if out_dir is not None else "fit.out_dir"
+    output_folder(batch_dir, option)
     cache = engine.DEFAULT_CACHE_DIR if cache_dir is None else cache_dir
+    # One run per batch folder (a second would fit the same photos twice), until its table
+    # is written.
+    with folder_lock(batch_dir, option=option):
+        return _run_locked(config, tables, jobs, name, batch_dir, scheduler, workers, vmap,
+                           n_starts, max_steps, resume, progress, cache, t0)  # fmt: skip
+
+
+def _run_locked(
+    config, tables, jobs, name, batch_dir, scheduler, workers, vmap, n_starts, max_steps,
+    resume, progress, cache, t0,
+) -> BatchSummary:  # fmt: skip
+    """The batch, its folder's lock held: the fits, then the table and figures."""
+    from invglare.config.photo_fit import PhotoFits
+    from invglare.fit import batch as engine
+    from invglare.fit.batch_figures import population_figures
+    from invglare.fit.batch_table import collect_rows, write_table
+
     with contextlib.ExitStack() as stack:
         client = None
         if scheduler is not None:  # reached, or refused, within seconds: before other work
             client = stack.enter_context(engine.dask_client(scheduler, cache_dir=cache))
         _check_config(config, tables, jobs, batch_dir, vmap)
         tasks = [engine.Task(job.name, batch_dir / job.name, job) for job in jobs]
+        engine.recover_unfinished([t.folder for t in tasks])  # before asking what is done
         done = [t for t in tasks if resume and engine.finished(t.folder) is not None]
         todo = [t for t in tasks if t not in done]
-        engine.remove_stale_temporaries(batch_dir, [t.name for t in tasks])
         log.info(
             "%d photos: %d to fit, %d finished before (skipped)%s",
             len(tasks), len(todo), len(done), "" if resume else "; --no-resume refits them",

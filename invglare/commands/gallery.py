@@ -324,8 +324,9 @@ def run_gallery(
     """
     from tqdm import tqdm
 
-    from invglare.files.atomic import atomic_write
-    from invglare.fit.report import atomic_directory
+    from invglare.commands import options
+    from invglare.files.atomic import atomic_directory, atomic_write
+    from invglare.files.outputs import output_file, output_folder
     from invglare.render.scenes import SCENES
 
     if scene not in SCENES:
@@ -333,6 +334,11 @@ def run_gallery(
     factor = _scene_factor(scene_scale)
     if npix < 16:
         raise ConfigError(f"--npix must be >= 16, got {npix}")
+    options.raster(npix, "--npix", channels=3, copies=4)
+    if wavelengths_nm is not None:
+        options.wavelengths(wavelengths_nm)
+    output_folder(Path(out_dir) / "gallery", "--out-dir", replaced=True)
+    output_file(Path(out_dir) / "gallery.md", "--out-dir", (".md",))
     entries = _unique_names([_entry(Path(p)) for p in models] if models else default_entries())
     scene_img, scene_px_deg = SCENES[scene](npix=npix, seed=0)
     scene_img = np.asarray(scene_img)

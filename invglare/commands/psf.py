@@ -13,7 +13,6 @@ from invglare.errors import NumericalError
 log = logging.getLogger("invglare")
 
 
-
 def run_psf(
     config_path: Path,
     out: Path,
@@ -25,22 +24,44 @@ def run_psf(
 ) -> None:
     import jax
 
+    from invglare._core.memory import check_compiled_memory, check_memory
+    from invglare.commands import options
     from invglare.config.model import build_model
     from invglare.files.exr import write_exr
+    from invglare.files.outputs import output_file
     from invglare.files.toml import load_toml
-    from invglare.optics.spectral import parse_wavelengths
 
+    out = output_file(out, "--out", (".exr",))
+    png = None if png is None else output_file(png, "--png", (".png",))
+    options.count(npix, "--npix")
+    options.positive(pixel_scale_deg, "--pixel-scale-deg")
+    lams = options.wavelengths(wavelengths)
+    n_lams = 1 if lams is None else len(lams)
+    if npix is not None:
+        options.raster(npix, "--npix", channels=n_lams, copies=2)
+    if lams is not None:  # at least a 64^2 PSF per wavelength, whatever the config says
+        side = npix or 64
+        check_memory(
+            2 * 4.0 * side**2 * n_lams,
+            f"{n_lams} wavelengths (--wavelengths-nm) of a {side}x{side} PSF each",
+        )
     config = load_toml(config_path)
-    lams = None if wavelengths is None else parse_wavelengths(wavelengths)
-    model = build_model(
-        config,
-        base_dir=Path(config_path).parent,
-        npix=npix,
-        pixel_scale_deg=pixel_scale_deg,
-        wavelengths_nm=lams,
-        source=str(config_path),
-    )
-    psf = np.asarray(jax.jit(lambda m: m())(model))
+    with options.given(
+        ("--npix", npix, "npix"),
+        ("--pixel-scale-deg", pixel_scale_deg, "pixel_scale_deg"),
+        ("--wavelengths-nm", wavelengths, "wavelength"),
+    ):
+        model = build_model(
+            config,
+            base_dir=Path(config_path).parent,
+            npix=npix,
+            pixel_scale_deg=pixel_scale_deg,
+            wavelengths_nm=lams,
+            source=str(config_path),
+        )
+    compiled = jax.jit(lambda m: m()).lower(model).compile()
+    check_compiled_memory(compiled, f"the PSF of {config_path}")
+    psf = np.asarray(compiled(model))
     if not np.all(np.isfinite(psf)):
         raise NumericalError(f"the PSF of {config_path} has non-finite values")
     scale = float(model.pixel_scale_deg)

@@ -8,6 +8,7 @@ from pathlib import Path
 import typer
 
 from invglare.errors import ConfigError
+from invglare.files.outputs import output_file, output_folder
 
 log = logging.getLogger("invglare")
 
@@ -50,6 +51,10 @@ def run_regress(
             "--golden-dir (create the goldens with --update --reason TEXT)"
         )
     select_cases(cases)  # unknown names fail before any model is built
+    output_folder(out_dir, "--out-dir")
+    output_file(Path(out_dir) / "regression.md", "--out-dir", (".md",))
+    if update:
+        output_folder(golden_dir, "--golden-dir")
     results = run_suite(cases, golden_dir)
     updated: list[str] = []
     if update:
@@ -93,9 +98,12 @@ def run_regress(
 def run_cie(specs: list[str], out_dir: Path) -> None:
     """Fit the eye model to the CIE GSF for each ``AGE,PIGMENT`` and write reports/cie/."""
     from invglare.cie_study import CieFitSetup, fit_cie, parse_cie_spec, write_cie_report
+    from invglare.commands.options import named
 
     # Every spec is checked before the first (minutes-long) fit starts.
-    pairs = [parse_cie_spec(s) for s in specs]
+    with named("--cie"):
+        pairs = [parse_cie_spec(s) for s in specs]
+    output_folder(out_dir, "--out-dir")
     setup = CieFitSetup()
     log.info(
         "fitting %d CIE GSF(s) over %.3g-%.3g deg (the model's alias-free range at %d pupil "

@@ -9,10 +9,11 @@ from pathlib import Path
 import numpy as np
 
 from invglare.errors import ConfigError, InputDataError
+from invglare.files.outputs import output_file, output_folder
 
 log = logging.getLogger("invglare")
 
-MODES = ("convolve", "billboard")
+MODES = ("convolve", "billboard", "kakimoto")
 OUTPUT_SUFFIXES = (".exr", ".png")
 #: Animation outputs: a video, a GIF, or (no suffix) a folder of linear EXR frames.
 ANIMATION_SUFFIXES = (".mp4", ".gif")
@@ -20,11 +21,21 @@ ANIMATION_SUFFIXES = (".mp4", ".gif")
 ANIMATION_CHUNK = 8
 
 
+#: The smallest scene (the procedural lights need a few pixels to be drawn).
+MIN_SCENE_NPIX = 8
+
+
 def run_scene(name: str, out: Path, npix: int, seed: int) -> None:
+    from invglare.commands import options
+    from invglare.files.outputs import output_file
     from invglare.render.scenes import SCENES, write_scene
 
     if name not in SCENES:
         raise ConfigError(f"unknown scene {name!r}; bundled scenes: {', '.join(SCENES)}")
+    out = output_file(out, "--out", (".exr",))
+    options.count(npix, "--npix", MIN_SCENE_NPIX)
+    options.count(seed, "--seed", 0)
+    options.raster(npix, "--npix", channels=3, copies=3)
     write_scene(name, out, npix=npix, seed=seed)
     log.info("wrote %s (%s, %dx%d, linear cd/m^2)", out, name, npix, npix)
 
@@ -37,10 +48,13 @@ def psf_at_scale(model, scale_deg: float, max_npix: int):
     """
     import jax
 
+    from invglare._core.memory import check_compiled_memory
     from invglare.render.convolve import resample_psf
     from invglare.render.position_glare import psf_npix_at_scale
 
-    psf = jax.jit(lambda m: m())(model)
+    compiled = jax.jit(lambda m: m()).lower(model).compile()
+    check_compiled_memory(compiled, f"the PSF of a {type(model).__name__}")
+    psf = compiled(model)
     own_scale = float(model.pixel_scale_deg)
     if math.isclose(own_scale, scale_deg, rel_tol=1e-6):
         return psf
@@ -66,20 +80,17 @@ def run_render(
 ) -> None:
     import jax.numpy as jnp
 
-    from invglare.files.exr import read_exr
     from invglare.render import convolve_psf, replace_with_billboards, validate_scene
 
+    _check_render_options(mode, threshold, max_bright, tonemap_name, exposure, pixel_scale_deg)
     if frames is not None or fps is not None:
         run_animation(scene, model_path, out, frames, fps, pixel_scale_deg)
         return
     if iterations is not None or depth is not None:
         run_scene_render(scene, model_path, out, tonemap_name, exposure, iterations, depth, seed)
         return
-    if mode not in MODES:
-        raise ConfigError(f"--mode {mode!r} is not one of {', '.join(MODES)}")
-    if out.suffix.lower() not in OUTPUT_SUFFIXES:
-        raise ConfigError(f"--out must end in {' or '.join(OUTPUT_SUFFIXES)}, got {out.name!r}")
-    img = read_exr(scene)
+    out = output_file(out, "--out", OUTPUT_SUFFIXES)
+    img = _read_scene(scene)
     image = validate_scene(img.data, name=str(scene))
     scale = pixel_scale_deg if pixel_scale_deg is not None else img.pixel_scale_deg
     if scale is None:
@@ -108,6 +119,11 @@ def run_render(
         _write(out, np.asarray(result), scale, model, "ghosts", scene, tonemap_name, params)
         return
     max_npix = 2 * max(image.shape[:2]) + 1
+    if mode == "kakimoto":
+        run_kakimoto_composite(
+            image, model, out, scale, scene, threshold, max_bright, tonemap_name, exposure
+        )
+        return
     if not model.shift_invariant:
         # Each light gets the PSF of its own direction (Kakimoto eq. 3: the lashes move
         # with the light), which a convolution cannot do.
@@ -140,6 +156,110 @@ def run_render(
         result = replace_with_billboards(image, _bright(image, threshold, max_bright), psf)
     _write(out, np.asarray(result), scale, model, mode, scene, tonemap_name, params)
     log.info("PSF %dpx at %.4g deg/px", psf.shape[0], scale)
+
+
+def _check_render_options(
+    mode: str,
+    threshold: float | None,
+    max_bright: int,
+    tonemap_name: str,
+    exposure: float,
+    pixel_scale_deg: float | None,
+) -> None:
+    """The options every kind of render takes, checked before anything is read."""
+    from invglare.commands import options
+    from invglare.render.tonemap import TONEMAPS
+
+    if mode not in MODES:
+        raise ConfigError(f"--mode {mode!r} is not one of {', '.join(MODES)}")
+    if tonemap_name not in TONEMAPS:
+        raise ConfigError(f"--tonemap {tonemap_name!r} is not one of {', '.join(TONEMAPS)}")
+    options.positive(threshold, "--threshold", zero=True)
+    options.count(max_bright, "--max-bright")
+    options.positive(exposure, "--exposure")
+    options.positive(pixel_scale_deg, "--pixel-scale-deg")
+
+
+def _read_scene(scene: Path):
+    """The scene's EXR (a missing, unreadable or non-EXR file is one line naming it)."""
+    from invglare.files.exr import read_exr
+
+    if scene.suffix.lower() != ".exr":
+        raise InputDataError(f"scene {str(scene)!r} is not an OpenEXR file (.exr)")
+    if scene.is_dir():
+        raise InputDataError(f"scene {str(scene)!r} is a folder, not an EXR file")
+    if not scene.exists():
+        raise InputDataError(f"scene {str(scene)!r} does not exist")
+    return read_exr(scene)
+
+
+def run_kakimoto_composite(
+    image,
+    model,
+    out: Path,
+    scale: float,
+    scene: Path,
+    threshold,
+    max_bright,
+    tonemap_name,
+    exposure,
+) -> None:
+    """Kakimoto et al.'s compositing (`invglare.render.composite`): the scene tone-mapped
+    (``--tonemap``, ``--exposure``) with a sigmoid-mapped glare billboard blended on at each
+    bright pixel, scaled by its value; a position-dependent model gives each its own."""
+    import jax
+    import jax.numpy as jnp
+
+    from invglare.render import tonemap
+    from invglare.render.composite import kakimoto_composite
+
+    image = jnp.asarray(image)
+    bright = _bright(image, threshold, max_bright)
+    max_npix = 2 * max(image.shape[:2]) + 1
+    core = model.core_radius_px()
+    radius = 0.0 if core is None else core * float(model.pixel_scale_deg) / scale
+    if model.shift_invariant:
+        psf, index = psf_at_scale(model, scale, max_npix=max_npix), None
+    else:
+        from invglare.render.bright import light_angles_deg
+        from invglare.render.position_glare import position_psf_bank, psf_npix_at_scale
+
+        angles = light_angles_deg(bright, image.shape[:2], scale)
+        own_npix = jax.eval_shape(lambda m: m(), model).shape[0]
+        npix = psf_npix_at_scale(own_npix, float(model.pixel_scale_deg), scale, max_npix)
+        psf = position_psf_bank(model, angles, scale, npix)
+        index = jnp.arange(angles.shape[0])
+    if image.ndim == 2 and psf.ndim == (3 if index is None else 4):
+        raise InputDataError(f"{scene} is monochrome (Y) but the model's PSF is RGB")
+    params = {"exposure": exposure} if tonemap_name in ("gamma", "srgb") else {}
+    if tonemap_name == "kakimoto":
+        raise ConfigError(
+            "--mode kakimoto tone-maps each glare billboard by the sigmoid itself; choose the "
+            "scene's tone map with --tonemap reinhard, gamma or srgb"
+        )
+    ldr = tonemap(image, tonemap_name, **params)
+    result = kakimoto_composite(ldr, bright, psf, radius, psf_index=index)
+    _write_display(out, np.asarray(result), scale, model, scene)
+    log.info(
+        "kakimoto compositing: %d billboards, spot radius %.3g px", int(bright.valid.sum()), radius
+    )
+
+
+def _write_display(out: Path, result, scale: float, model, scene: Path) -> None:
+    """Display values (already composited): a PNG as they are, an EXR holding them."""
+    from invglare.files.exr import write_exr
+    from invglare.files.images import write_png
+
+    if out.suffix.lower() == ".exr":
+        write_exr(
+            out,
+            result,
+            pixel_scale_deg=scale,
+            config=model.to_config(),
+            attrs={"renderMode": "kakimoto", "scene": str(scene), "values": "display [0, 1]"},
+        )
+    else:
+        write_png(out, result)
 
 
 def _tonemap_params(
@@ -220,7 +340,12 @@ def _bright(image, threshold: float | None, max_bright: int):
     from invglare.render import bright_pixel_list
 
     lum = image if image.ndim == 2 else rec709_luminance(image)
-    level = float(jnp.max(lum)) / 100.0 if threshold is None else threshold
+    brightest = float(jnp.max(lum))
+    if brightest <= 0:
+        raise InputDataError(
+            "the scene is dark (its brightest pixel is 0): there is no light to give glare"
+        )
+    level = brightest / 100.0 if threshold is None else threshold
     bright = bright_pixel_list(image, level, max_bright)
     if int(bright.n_above) > max_bright:
         log.warning(
@@ -236,15 +361,17 @@ def _bright(image, threshold: float | None, max_bright: int):
 def _animation_target(out: Path) -> str:
     """ "mp4", "gif" or "exr" (a folder of frames) from the output path, or a ConfigError."""
     suffix = out.suffix.lower()
-    if suffix in ANIMATION_SUFFIXES:
-        return suffix[1:]
-    if suffix:
+    if suffix and suffix not in ANIMATION_SUFFIXES:
         raise ConfigError(
             f"an animation's --out must end in {' or '.join(ANIMATION_SUFFIXES)}, or be a "
             f"folder (no suffix) for EXR frames; got {out.name!r}"
         )
+    if suffix:
+        output_file(out, "--out", ANIMATION_SUFFIXES)
+        return suffix[1:]
     if out.exists() and (not out.is_dir() or any(out.iterdir())):
         raise ConfigError(f"--out folder {str(out)!r} exists and is not empty; choose a new one")
+    output_folder(out, "--out")
     return "exr"
 
 
@@ -265,6 +392,20 @@ def _frame_writer(target: str, path: Path, fps: float):
             path, format="FFMPEG", fps=fps, codec="libx264", quality=8, macro_block_size=2
         )
     return imageio.get_writer(path, format="GIF", mode="I", duration=1000.0 / fps, loop=0)
+
+
+def _check_animation_size(target: str, out: Path, frames: int, image) -> None:
+    """Refuse --frames that cannot be stored: EXR frames on the disk, a GIF in memory
+    (its writer keeps every frame until it closes)."""
+    from invglare._core.memory import check_memory
+    from invglare.files.outputs import check_disk
+
+    h, w = image.shape[:2]
+    what = f"{frames} frames of {w}x{h} pixels (--frames {frames})"
+    if target == "exr":
+        check_disk(float(frames) * h * w * 3 * 4, out, what)
+    elif target == "gif":
+        check_memory(float(frames) * h * w * 3, f"a GIF of {what}")
 
 
 def run_animation(
@@ -291,8 +432,9 @@ def run_animation(
     import jax.numpy as jnp
     from tqdm import tqdm
 
+    from invglare.commands import options
     from invglare.files.atomic import atomic_path
-    from invglare.files.exr import read_exr, write_exr
+    from invglare.files.exr import write_exr
     from invglare.models.temporal import frame_luminance_cd_m2
     from invglare.render import validate_scene
     from invglare.render.temporal_frames import check_display, render_sequence
@@ -302,13 +444,16 @@ def run_animation(
     if isinstance(frames, bool) or not isinstance(frames, int) or frames < 1:
         raise ConfigError(f"--frames must be an integer >= 1, got {frames!r}")
     target = _animation_target(out)
-    img = read_exr(scene)
+    options.count(frames, "--frames")
+    options.positive(fps, "--fps")
+    img = _read_scene(scene)
     image = validate_scene(img.data, name=str(scene))
     scale = pixel_scale_deg if pixel_scale_deg is not None else img.pixel_scale_deg
     if scale is None:
         raise InputDataError(
             f"{scene} has no pixelScaleDeg header; pass --pixel-scale-deg (degrees per pixel)"
         )
+    _check_animation_size(target, out, frames, image)
     model = _load_model(model_path)
     if not model.animated:
         raise ConfigError(
@@ -395,12 +540,11 @@ def run_scene_render(
     """
     import jax
 
+    from invglare.commands import options
     from invglare.files.depth_frames import read_frame_and_depth
 
-    if out.suffix.lower() not in OUTPUT_SUFFIXES:
-        raise ConfigError(f"--out must end in {' or '.join(OUTPUT_SUFFIXES)}, got {out.name!r}")
-    if iterations is not None and (isinstance(iterations, bool) or iterations < 1):
-        raise ConfigError(f"--iterations must be an integer >= 1, got {iterations!r}")
+    out = output_file(out, "--out", OUTPUT_SUFFIXES)
+    options.count(iterations, "--iterations")
     model = _load_model(model_path) if model is None else model
     if not model.renders_scenes:
         raise ConfigError(

@@ -34,7 +34,7 @@ from typing import Any
 import numpy as np
 
 from invglare.config.synth import OBSERVATION_KEYS, SynthSpec, load_synth_specs
-from invglare.errors import ConfigError, InvglareError
+from invglare.errors import ConfigError, InvglareError, prefixed
 
 log = logging.getLogger("invglare")
 
@@ -74,6 +74,9 @@ def build_truth_forward(spec: SynthSpec):
         space = ParameterSpace(params)
         space.check(forward)
         forward = space.apply(forward, jnp.asarray(list(spec.set_values.values())))
+        # Values written by path skip the readers' range checks: read the result back.
+        with prefixed(f"{spec.path} [set]"):
+            build_model(forward.model.to_config(), spec.base_dir, source=str(spec.path))
     return forward
 
 
@@ -189,8 +192,16 @@ def run_synth(specs: list[Path], out_dir: Path | None = None) -> list[Path]:
     """Synthesise every spec in turn. **Returns:** the photos written."""
     from tqdm import tqdm
 
+    from invglare.files.outputs import output_file, output_folder
+
+    if out_dir is not None:
+        output_folder(out_dir, "--out-dir")
     # Every spec is checked before any work; a population spec gives one per member.
     parsed = [member for p in specs for member in load_synth_specs(p, out_dir)]
+    for spec in parsed:
+        where = "--out-dir" if out_dir is not None else f"the folder of {spec.path}"
+        output_file(spec.out_exr, where, (".exr",))
+        output_file(spec.out_truth, where, (".json",))
     written = []
     for spec in tqdm(parsed, desc="synth", unit="photo", disable=len(parsed) < 2):
         photo, truth = synthesize(spec)

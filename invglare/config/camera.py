@@ -5,13 +5,19 @@
 
 from __future__ import annotations
 
+from pathlib import Path
 from typing import Any
 
 from invglare.aperture.camera import CameraAperture, CrossScreen, Diaphragm, Dust
+from invglare.aperture.eye.schema import IMAGE_DEFAULT_ROLES
 from invglare.config.section import Section
+from invglare.config.shapes import shape_from_config
+from invglare.errors import ConfigError
 
 
-def camera_from_config(table: dict[str, Any], where: str = "camera") -> CameraAperture:
+def camera_from_config(
+    table: dict[str, Any], where: str = "camera", base_dir: str | Path | None = None
+) -> CameraAperture:
     """Build a :class:`~invglare.aperture.camera.CameraAperture` from a configuration table.
 
     **Arguments:**
@@ -28,7 +34,11 @@ def camera_from_config(table: dict[str, Any], where: str = "camera") -> CameraAp
     - `[cross_screen]` (optional): `angles_deg` (a non-empty list), `spacing_mm`,
       `duty_cycle`; optional `line_offset_mm`;
     - `[dust]` (optional): `density`, `opacity`, `feature_size_mm`; optional `octaves`
-      (an integer), `edge_softness`.
+      (an integer), `edge_softness`;
+    - `[obstacle_image]`, `[pupil_image]` (optional): a picture (`path` relative to
+      `base_dir`, `width_mm`; optional `center_mm`, `rotation_deg`, `role`) of an obstacle
+      in front of the lens (white passes light, role ``"block"``) or of the opening
+      (white passes, role ``"open"``), as for the eye.
 
     For example ``[model.camera.diaphragm]`` with ``n_blades = 6``, ``f_number = 8.0``,
     ``focal_length_mm = 50.0`` and ``[model.camera.cross_screen]`` with
@@ -49,7 +59,7 @@ def camera_from_config(table: dict[str, Any], where: str = "camera") -> CameraAp
     ```
     """
     top = Section(table, where)
-    top.only("diaphragm", "cross_screen", "dust", "seed")
+    top.only("diaphragm", "cross_screen", "dust", "seed", *IMAGE_DEFAULT_ROLES)
     seed = top.get("seed", int, 0)
     diaphragm = _args(
         top.section("diaphragm", required=True),
@@ -74,12 +84,23 @@ def camera_from_config(table: dict[str, Any], where: str = "camera") -> CameraAp
         octaves=(int, None),
         edge_softness=(float, None),
     )
+    images = {}
+    for name, role in IMAGE_DEFAULT_ROLES.items():
+        image_table = top.get(name, dict, None)
+        images[name] = None
+        if image_table is not None:
+            if "kind" in image_table:
+                raise ConfigError(f"{where}.{name} is an image: drop its key 'kind'")
+            images[name] = shape_from_config(
+                {"kind": "image", "role": role, **image_table}, f"{where}.{name}", base_dir
+            )
     top.finish()
     # Range errors are placed at the camera's table (``camera: diaphragm n_blades ...``).
     return CameraAperture(
         top.build(Diaphragm, **diaphragm),
         None if screen is None else top.build(CrossScreen, **screen),
         None if dust is None else top.build(Dust, **dust, key=seed),
+        **images,
     )
 
 

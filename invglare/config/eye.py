@@ -7,14 +7,17 @@ The keys are those of :mod:`invglare.aperture.eye.schema`, whose
 from __future__ import annotations
 
 import math
+from pathlib import Path
 from typing import Any
 
 import jax
 
+from invglare._core.memory import check_memory
 from invglare.aperture.eye import EyeAperture, Eyelashes, Eyelids, Gratings, Particles, Pupil
 from invglare.aperture.eye.schema import (
     EYE_KEYS,
     GRATING_KEYS,
+    IMAGE_DEFAULT_ROLES,
     LASH_KEYS,
     LIDS_KEYS,
     PARTICLE_KEYS,
@@ -22,6 +25,7 @@ from invglare.aperture.eye.schema import (
     SEED_TAGS,
 )
 from invglare.config.section import Section
+from invglare.config.shapes import shape_from_config
 from invglare.errors import ConfigError
 
 # How a value of each kind of key is read (see the schema); `None` as the default: absent,
@@ -35,7 +39,9 @@ _READERS = {
 }
 
 
-def eye_from_config(table: dict[str, Any], where: str = "eye") -> EyeAperture:
+def eye_from_config(
+    table: dict[str, Any], where: str = "eye", base_dir: str | Path | None = None
+) -> EyeAperture:
     """Build an :class:`~invglare.aperture.eye.EyeAperture` from a TOML-like table.
 
     **Arguments:**
@@ -43,6 +49,7 @@ def eye_from_config(table: dict[str, Any], where: str = "eye") -> EyeAperture:
     - `table`: a dict with the sub-tables below; only `pupil` is required.
     - `where`: where the table sits in the configuration (e.g. ``"model.eye"``), for
       error messages.
+    - `base_dir`: what a relative image `path` is resolved against (the config's folder).
 
     ```toml
     [eye]
@@ -62,6 +69,13 @@ def eye_from_config(table: dict[str, Any], where: str = "eye") -> EyeAperture:
     [eye.gratings]               # count (required), n_max, spacing_mm,
     count = 200                  #   line_thickness_mm, line_length_mm, inner_radius_mm,
                                  #   outer_radius_mm, lines_per_grating, key_data
+    [eye.obstacle_image]         # any picture of the obstacle (Kakimoto's t_o): path and
+    path = "lashes.png"          #   width_mm (required), center_mm, rotation_deg, role
+    width_mm = 14.0              #   ("block": white passes light, the default; "open":
+                                 #   white stops it); clear outside the picture
+    [eye.pupil_image]            # a picture of the pupil (white passes), multiplying the
+    path = "pupil.png"           #   procedural pupil; same keys (role default "open")
+    width_mm = 6.0
     ```
 
     `n_max` defaults to the count rounded up. A component's key is
@@ -109,6 +123,16 @@ def eye_from_config(table: dict[str, Any], where: str = "eye") -> EyeAperture:
     if gratings_sec is not None:
         key = jax.random.fold_in(root, SEED_TAGS["gratings"])
         gratings = _component(gratings_sec, Gratings, GRATING_KEYS, ("count",), key)
+    images = {}
+    for name, role in IMAGE_DEFAULT_ROLES.items():
+        image_table = top.get(name, dict, None)
+        images[name] = None
+        if image_table is not None:
+            if "kind" in image_table:
+                raise ConfigError(f"{where}.{name} is an image: drop its key 'kind'")
+            images[name] = shape_from_config(
+                {"kind": "image", "role": role, **image_table}, f"{where}.{name}", base_dir
+            )
     top.finish()
     return top.build(
         EyeAperture,
@@ -118,6 +142,7 @@ def eye_from_config(table: dict[str, Any], where: str = "eye") -> EyeAperture:
         lower_lashes=lashes["lower"],
         particles=particles,
         gratings=gratings,
+        **images,
     )
 
 
@@ -146,7 +171,18 @@ def _component(
         args["key"] = key
     if "count" in args and "n_max" not in args:
         args["n_max"] = max(1, math.ceil(args["count"]))
+    if "n_max" in args:
+        n = args["n_max"]
+        check_memory(
+            float(n) * POOL_BYTES_PER_ELEMENT,
+            f"{sec.where}.n_max = {n} (a pool of {n} elements, each drawn and rasterised)",
+        )
     return sec.build(cls, **args)
+
+
+#: A lower bound of the memory one pool element (a lash, a particle, a grating) takes: its
+#: drawn values and its raster on an aperture grid of at least 32² float32 samples.
+POOL_BYTES_PER_ELEMENT = 4 * 32**2
 
 
 def _wrap_key(data, where: str) -> jax.Array:

@@ -98,6 +98,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from invglare._core.memory import check_memory
 from invglare.config.fit_tables import (
     DiscreteOption,
     read_discrete,
@@ -430,7 +431,8 @@ def load_fit(
     msec.finish()
     model_path = resolve(base, model_file)
     if not model_path.is_file():
-        raise ConfigError(f"model.config = {model_file!r}: {model_path} does not exist")
+        what = "is a folder, not a TOML file" if model_path.is_dir() else "does not exist"
+        raise ConfigError(f"model.config = {model_file!r}: {model_path} {what}")
     model_config = load_toml(model_path)
 
     target, header_scale = load_target(
@@ -481,8 +483,18 @@ def load_fit(
     if max_steps is not None:
         solver["max_steps"] = int(max_steps)
         stages = tuple(dataclasses.replace(st, max_steps=int(max_steps)) for st in stages)
+    starts_key = "--n-starts" if n_starts is not None else "solver.n_starts"
     if n_cfg < 1:
-        raise ConfigError(f"the number of starts must be >= 1, got {n_cfg}")
+        raise ConfigError(f"{starts_key}: the number of starts must be >= 1, got {n_cfg}")
+    if solver["max_steps"] < 1:
+        key = "--max-steps" if max_steps is not None else "solver.max_steps"
+        raise ConfigError(f"{key} must be >= 1, got {solver['max_steps']}")
+    # The starts are solved side by side: each holds its residuals and their Jacobian.
+    check_memory(
+        8.0 * n_cfg * target.size * (space.size + 2),
+        f"{n_cfg} starts on a {target.shape[1]}x{target.shape[0]} photo with {space.size} "
+        f"free parameters ({starts_key} {n_cfg})",
+    )
 
     truth_path = tsec.truth_path or truth_path_for(tsec.path)
     truth = None

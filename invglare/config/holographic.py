@@ -8,10 +8,11 @@ from typing import Any
 import jax
 import numpy as np
 
+from invglare._core.grids import check_wavelengths_nm
 from invglare.config.eye import eye_from_config
 from invglare.config.raster import KEEP_GRID, GridRequest, square_npix
 from invglare.config.section import Section, check_sections
-from invglare.errors import ConfigError, PhysicsRangeError
+from invglare.errors import ConfigError, PhysicsRangeError, prefixed
 from invglare.models.holographic import (
     _GEOMETRY_KEYS,
     DEFAULT_RGB_NM,
@@ -228,6 +229,8 @@ def holographic_from_config(
     lams = [lams] if isinstance(lams, int | float) else lams
     if not all(isinstance(v, int | float) and not isinstance(v, bool) for v in lams):
         raise ConfigError(f"spectrum.wavelengths_nm must be numbers (nm), got {lams!r}")
+    with prefixed("spectrum.wavelengths_nm" if wavelengths_nm is None else "wavelengths"):
+        check_wavelengths_nm(lams)
     scale = pixel_scale_deg if pixel_scale_deg is not None else scale
     if scale is not None and window is not None:
         raise ConfigError("give model.window_mm or output.pixel_scale_deg, not both")

@@ -38,6 +38,8 @@ or a cross-screen filter) masked by a pupil (the eye's, or a diaphragm). They ta
     masking = "fixed"             # or "position" (the obstacle scrolls with the light)
     colour = "spectral"           # or "paper_rgb" (680/530/460 nm as R, G, B)
     max_light_angle_deg = 0.0
+    wide_angle = "ensemble"       # an eye's particles beyond the raster's band: "ensemble",
+                                  #   "phases" (with their positions) or "none"
 
     [model.eye]                   # see invglare.config.eye.eye_from_config
     seed = 7
@@ -65,14 +67,15 @@ import dataclasses
 from pathlib import Path
 from typing import Any
 
+from invglare._core.memory import check_psf_memory
 from invglare.aperture import Aperture
 from invglare.config.camera import camera_from_config
 from invglare.config.eye import eye_from_config
 from invglare.config.section import Section, check_sections
 from invglare.config.shapes import shape_from_config
-from invglare.errors import ConfigError
+from invglare.errors import ConfigError, prefixed
 from invglare.models.aperture_psf import AperturePSF
-from invglare.models.kakimoto import COLOURS, MASKINGS, KakimotoGlare
+from invglare.models.kakimoto import COLOURS, MASKINGS, WIDE_ANGLE, KakimotoGlare
 from invglare.optics.propagator import METHODS, PROPAGATIONS
 from invglare.optics.spectral import SPECTRAL_METHODS, parse_wavelengths
 
@@ -142,11 +145,11 @@ def read_raster_model(
     else:
         table = model.get(kind, dict, required=True)
         if kind == "eye":
-            aperture = eye_from_config(table, "model.eye")
+            aperture = eye_from_config(table, "model.eye", base_dir)
             focal = model.get("focal_length_mm", float, 17.0)
             distance = model.get("obstacle_distance_mm", float, 8.0)
         else:
-            aperture = camera_from_config(table, "model.camera")
+            aperture = camera_from_config(table, "model.camera", base_dir)
             focal = model.get("focal_length_mm", float, None)
             if focal is None:
                 focal = float(aperture.diaphragm.focal_length_mm)
@@ -156,6 +159,7 @@ def read_raster_model(
             masking=model.choice("masking", MASKINGS, "fixed"),
             colour=model.choice("colour", COLOURS, "spectral"),
             max_light_angle_deg=model.get("max_light_angle_deg", float, 0.0),
+            wide_angle=model.choice("wide_angle", WIDE_ANGLE, "ensemble"),
         )
     sampling = dict(
         propagation=model.choice("propagation", PROPAGATIONS, "fraunhofer"),
@@ -183,7 +187,14 @@ def read_raster_model(
     spectrum.finish()
     if wavelengths_nm is not None:
         lams = wavelengths_nm
-    lams = None if lams is None else parse_wavelengths(lams)
+    if lams is not None:
+        with prefixed("spectrum.wavelengths_nm" if wavelengths_nm is None else "wavelengths"):
+            lams = parse_wavelengths(lams)
+    check_psf_memory(
+        source, aperture_npix=sampling["aperture_npix"], npix=sampling["npix"],
+        n_wavelengths=1 if lams is None else len(lams),
+        names="model.aperture_npix, output.npix, spectrum.wavelengths_nm",
+    )  # fmt: skip
 
     if kind == "aperture":
         return AperturePSF.build(

@@ -46,7 +46,7 @@ from pathlib import Path
 from typing import Any
 
 from invglare.config.section import Section, check_sections
-from invglare.errors import ConfigError
+from invglare.errors import ConfigError, PhysicsRangeError
 from invglare.files.toml import load_toml
 
 #: Top-level tables of a synth spec.
@@ -138,6 +138,10 @@ def read_observation(table: Any, where: str = "observation") -> dict[str, float 
                 f"[{where}] has unknown key {key!r}; valid keys: {', '.join(OBSERVATION_KEYS)}"
             )
         out[key] = _number(value, f"{where}.{key}")
+    if out.get("flux") is not None and out["flux"] < 0:
+        raise PhysicsRangeError(
+            f"{where}.flux must be >= 0 counts (a source gives light), got {out['flux']:g}"
+        )
     return out
 
 
@@ -184,7 +188,19 @@ def load_synth_specs(path: str | Path, out_dir: str | Path | None = None) -> lis
                 drawn=member_values(member),
             )
         )
+        _check_observation(members[-1].observation)
     return members
+
+
+def _check_observation(observation: dict[str, float | None]) -> None:
+    """Every field's range, as the photo model checks it, before any model is built."""
+    from invglare.errors import InvglareError
+    from invglare.fit import Observation
+
+    try:
+        Observation(**observation)
+    except InvglareError as err:
+        raise type(err)(f"[observation]: {err}") from None
 
 
 def load_synth(path: str | Path, out_dir: str | Path | None = None) -> SynthSpec:
@@ -234,9 +250,8 @@ def _load(spec_path: Path, config: dict[str, Any], out_dir: str | Path | None) -
             )
         model_path = (spec_path.parent / model_ref).resolve()
         if not model_path.is_file():
-            raise ConfigError(
-                f"synth.model = {model_ref!r}: the model config {model_path} does not exist"
-            )
+            what = "is a folder, not a TOML file" if model_path.is_dir() else "does not exist"
+            raise ConfigError(f"synth.model = {model_ref!r}: the model config {model_path} {what}")
         model_config = load_toml(model_path)
         base_dir = model_path.parent
     else:
@@ -259,6 +274,12 @@ def _load(spec_path: Path, config: dict[str, Any], out_dir: str | Path | None) -
         set_values[key] = _number(value, f"set.{key!r}")
 
     observation = read_observation(config.get("observation", {}))
+    if observation.get("background", 0.0) < 0:
+        raise PhysicsRangeError(
+            f"observation.background must be >= 0 counts per pixel (the mean of a photo's "
+            f"counts cannot be negative), got {observation['background']:g}"
+        )
+    _check_observation(observation)
     return SynthSpec(
         path=spec_path,
         name=name,

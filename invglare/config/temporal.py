@@ -8,6 +8,7 @@ from typing import Any
 import jax
 import numpy as np
 
+from invglare._core.memory import check_psf_memory
 from invglare.config.eye import eye_from_config
 from invglare.config.raster import KEEP_GRID, GridRequest, square_npix
 from invglare.config.section import Section, check_sections
@@ -19,9 +20,15 @@ from invglare.dynamics import (
     PupilDynamics,
     VitreousBody,
 )
-from invglare.errors import ConfigError, PhysicsRangeError
-from invglare.models.temporal import _DYNAMICS_PARTS, BRIGHTNESS, TemporalGlare
-from invglare.optics.spectral import DEFAULT_WAVELENGTHS
+from invglare.errors import ConfigError, PhysicsRangeError, prefixed
+from invglare.models.temporal import (
+    _DYNAMICS_PARTS,
+    BRIGHTNESS,
+    EYE_FOCAL_LENGTH_MM,
+    FRESNEL_MODES,
+    TemporalGlare,
+)
+from invglare.optics.spectral import COPY_WEIGHTINGS, DEFAULT_WAVELENGTHS, parse_wavelengths
 
 
 def _part_classes() -> dict[str, type]:
@@ -78,8 +85,7 @@ def temporal_from_config(
     **Arguments:**
 
     - `config`: the whole parsed TOML (sections ``model``, ``output``, ``spectrum``).
-    - `base_dir`: where relative paths would be resolved (the temporal model has none;
-      accepted for the common interface).
+    - `base_dir`: what the eye's relative image paths are resolved against.
     - `grid`: its `npix` and `wavelengths_nm` override ``output.npix`` and
       ``spectrum.wavelengths_nm``; a `pixel_scale_deg` is refused (the PSF is at the FFT's
       native scale).
@@ -88,13 +94,17 @@ def temporal_from_config(
     [model]
     kind = "temporal"
     aperture_npix = 256            # default output.npix / 2
-    focal_length_mm = 1000.0       # distance in E (default: the shortest the raster resolves)
+    focal_length_mm = 17.0         # pupil-to-retina distance d of eq. 3 (default 17)
+    fresnel = "retina"             # E at d, alias-free (the paper's eq. 3, the default);
+                                   #   "effective": E at fresnel_distance_mm (an
+                                   #   approximation: a defocus of 1000 / d D); "none": E = 1
+    # fresnel_distance_mm = 600.0  # with fresnel = "effective" only
     window_mm = 8.5                # default: the largest pupil of the dynamics + 2 px
     fps = 30.0
     seed = 0                       # or key_data = [..] (what the model's to_config() writes)
     field_luminance_cd_m2 = 100.0  # adaptation when no frame is given
     luminance_scale = 1.0          # cd/m^2 per frame unit
-    brightness = "unit"            # or "transmitted"
+    brightness = "transmitted"     # eq. 3's K: glare ~ pupil area (default), or "unit"
     tonemap = "gamma"              # any of invglare.render.TONEMAPS
     [model.tonemap_params]         # keyword parameters of the tone map
     exposure = 1.0
@@ -111,12 +121,13 @@ def temporal_from_config(
     reference_wavelength_nm = 575.0
     illuminant = "E"
     colourspace = "sRGB"
+    copy_weighting = "energy"      # each copy keeps the 575 nm PSF's energy; "paper": the
+                                   #   paper's plain look-up, (lambda / 575)^2 of it
     ```
 
     **Raises:** `ConfigError` naming the key for unknown keys, wrong types or choices;
     `PhysicsRangeError` for values out of range.
     """
-    del base_dir  # no file references in a temporal model
     check_sections(config, ("model", "output", "spectrum"), source)
     npix = square_npix(grid.npix, source)
     pixel_scale_deg, wavelengths_nm = grid.pixel_scale_deg, grid.wavelengths_nm
@@ -124,7 +135,7 @@ def temporal_from_config(
     kind = model.get("kind", str, required=True)
     if kind != "temporal":
         raise ConfigError(f"model.kind = {kind!r}; temporal_from_config reads kind = 'temporal'")
-    eye = eye_from_config(model.get("eye", dict, required=True), "model.eye")
+    eye = eye_from_config(model.get("eye", dict, required=True), "model.eye", base_dir)
     dyn_table = Section(model.get("dynamics", dict, {}), "model.dynamics")
     classes = _part_classes()
     parts = {
@@ -145,14 +156,16 @@ def temporal_from_config(
     for name in params.table:
         params.get(name, float)
     kwargs = dict(
-        focal_length_mm=model.get("focal_length_mm", float, None),
+        focal_length_mm=model.get("focal_length_mm", float, EYE_FOCAL_LENGTH_MM),
+        fresnel=model.choice("fresnel", FRESNEL_MODES, "retina"),
+        fresnel_distance_mm=model.get("fresnel_distance_mm", float, None),
         aperture_npix=model.get("aperture_npix", int, None),
         window_mm=model.get("window_mm", float, None),
         fps=model.get("fps", float, 30.0),
         key=key,
         field_luminance_cd_m2=model.get("field_luminance_cd_m2", float, 100.0),
         luminance_scale=model.get("luminance_scale", float, 1.0),
-        brightness=model.choice("brightness", BRIGHTNESS, "unit"),
+        brightness=model.choice("brightness", BRIGHTNESS, "transmitted"),
         tonemap_name=model.get("tonemap", str, "gamma"),
         tonemap_params={k: float(v) for k, v in params.table.items()} or None,
     )
@@ -173,12 +186,21 @@ def temporal_from_config(
         reference_wavelength_nm=spectrum.get("reference_wavelength_nm", float, 575.0),
         illuminant=spectrum.get("illuminant", str, "E"),
         colourspace=spectrum.get("colourspace", str, "sRGB"),
+        copy_weighting=spectrum.choice("copy_weighting", COPY_WEIGHTINGS, "energy"),
     )
     spectrum.finish()
+    with prefixed("spectrum.wavelengths_nm" if wavelengths_nm is None else "wavelengths"):
+        parse_wavelengths(lams if wavelengths_nm is None else wavelengths_nm)
+    out_npix = out_npix if npix is None else npix
+    # One FFT per frame at the aperture raster's size: the scaled copies share it.
+    check_psf_memory(
+        source, aperture_npix=kwargs["aperture_npix"] or out_npix // 2, npix=out_npix,
+        n_wavelengths=1, names="model.aperture_npix, output.npix",
+    )  # fmt: skip
     return TemporalGlare.build(
         eye,
         EyeDynamics(**parts),
-        npix=out_npix if npix is None else npix,
+        npix=out_npix,
         wavelengths_nm=lams if wavelengths_nm is None else wavelengths_nm,
         **colour,
         **kwargs,

@@ -46,6 +46,7 @@ lens parameters survive the round trip.
     source = "where the numbers come from"
     stated_effective_focal_length_mm = 101.181   # optional, for checks
     stated_back_focal_length_mm = 77.405         # optional
+    stated_f_number = 3.5                        # optional
     reflectance = 0.01        # coating of every glass-air surface (default 0)
     sensor_reflectance = 0.02 # default 0 (no sensor ghosts)
     object_index = 1.0
@@ -71,6 +72,7 @@ from typing import Any
 
 import numpy as np
 
+from invglare._core.memory import check_psf_memory
 from invglare.config.raster import KEEP_GRID, GridRequest
 from invglare.config.section import Section
 from invglare.errors import ConfigError, PhysicsRangeError
@@ -109,6 +111,7 @@ class LensFile:
     stated_effective_focal_length_mm: float | None
     stated_back_focal_length_mm: float | None
     path: Path | None = None
+    stated_f_number: float | None = None
 
 
 def bundled_lenses() -> tuple[str, ...]:
@@ -131,6 +134,7 @@ def lens_from_table(table: dict[str, Any], where: str = "lens") -> LensFile:
     source = t.get("source", (str,), "")
     efl = t.get("stated_effective_focal_length_mm", (float,), None)
     bfl = t.get("stated_back_focal_length_mm", (float,), None)
+    f_number = t.get("stated_f_number", (float,), None)
     coating = t.get("reflectance", (float,), 0.0)
     sensor = t.get("sensor_reflectance", (float,), 0.0)
     object_index = t.get("object_index", (float,), 1.0)
@@ -184,7 +188,7 @@ def lens_from_table(table: dict[str, Any], where: str = "lens") -> LensFile:
             object_index=lens.object_index,
             name=lens.name,
         )
-    return LensFile(lens, name, source, efl, bfl)
+    return LensFile(lens, name, source, efl, bfl, stated_f_number=f_number)
 
 
 def _lens_path(name_or_path: str | Path, base_dir: str | Path | None) -> Path:
@@ -222,6 +226,7 @@ def load_lens_file(name_or_path: str | Path, base_dir: str | Path | None = None)
         info.stated_effective_focal_length_mm,
         info.stated_back_focal_length_mm,
         path,
+        info.stated_f_number,
     )
 
 
@@ -372,9 +377,13 @@ def veiling_from_config(
         ):
             raise ConfigError(f"output.npix must be an integer or [ny, nx], got {shape!r}")
         shape = (shape[0], shape[1])
+    shape = shape if grid.npix is None else grid.npix
+    if isinstance(shape, int) or all(isinstance(v, int) and v > 0 for v in shape):
+        check_psf_memory(source, aperture_npix=None, npix=shape, n_wavelengths=1,
+                         names="output.npix")  # fmt: skip
     return VeilingGlare.build(
         ghosts,
-        npix=shape if grid.npix is None else grid.npix,
+        npix=shape,
         pixel_scale_deg=scale if grid.pixel_scale_deg is None else grid.pixel_scale_deg,
         **options,
     )

@@ -11,6 +11,12 @@ numbers to an eye).
 - :mod:`~invglare.dynamics.lids`: blinking and squinting;
 - :mod:`~invglare.dynamics.eye`: all of them as one state and one step;
 - :mod:`~invglare.dynamics.noise`: three-octave value noise.
+
+Every module says where its numbers come from ("Where the numbers come from"): the
+paper's (and its sources': Moon and Spencer, Fry, Gray et al., Zimmerman), textbook
+anatomy, or values chosen here, named as such. The observer's motion, which the paper
+lists among the forces on the vitreous, is an input of each step
+(``head_acceleration_rad_s2``).
 """
 
 from invglare.dynamics.accommodation import HIGH_BAND_HZ as HIGH_BAND_HZ

@@ -159,11 +159,13 @@ class EyeDynamics(eqx.Module):
         dt_s: float | Float[ArrayLike, ""],
         key: Key[Array, ""],
         rest_pupil_mm: Float[ArrayLike, ""],
+        head_acceleration_rad_s2: Float[ArrayLike, " 3"] | None = None,
     ) -> DynamicsState:
         """Advance by one frame of `dt_s` seconds, after a frame of mean luminance given.
 
         The lens is driven by the accommodation signal of the frame's mean pupil; the
-        vitreous by this frame's saccade draw.
+        vitreous by this frame's saccade draw and the observer's motion,
+        `head_acceleration_rad_s2` (rad/s^2, ``(3,)``; None: a still head).
         """
         dt = as_float(dt_s)
         mean = self.pupil.mean_diameter_mm(state.field_luminance_cd_m2, rest_pupil_mm)
@@ -172,7 +174,7 @@ class EyeDynamics(eqx.Module):
             state.lens, lambda t: self.accommodation.signal_d(t, k_acc, mean), state.time_s, dt
         )
         k_vit = jax.random.fold_in(jax.random.fold_in(key, _VITREOUS), state.frame)
-        vitreous = self.vitreous.step(state.vitreous, k_vit, dt)
+        vitreous = self.vitreous.step(state.vitreous, k_vit, dt, head_acceleration_rad_s2)
         luminance = damp_luminance(
             state.field_luminance_cd_m2, frame_luminance_cd_m2, dt, self.pupil.adaptation_time_s
         )

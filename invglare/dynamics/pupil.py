@@ -16,6 +16,14 @@ The paper leaves the noise's scale open; here ``noise`` is value noise in ``[-1,
 times `hippus_amplitude_mm`, so the fluctuation stays within
 ``amplitude * (p_max / p) sqrt(1 - p / p_max)`` of the mean (about +-0.42 mm at 1.9 mm
 and +-0.04 mm at 7.9 mm with the default 0.1 mm).
+
+**Where the numbers come from.** Eq. 2 (Moon and Spencer 1944), eq. 1 with
+``p_max = 9`` mm and three octaves of value noise are the paper's; eq. 1's form is the
+paper's fit to Fry's (1991) pupil recordings under discomfort glare. The noise's scale
+(``hippus_amplitude_mm = 0.1``) is a chosen value (fluctuations of a few tenths of a mm
+in bright light, as Fry's curves show qualitatively), and so is the time constant of
+the damped field luminance (``adaptation_time_s = 0.5`` s; the paper damps the screen's
+mean intensity after Durand and Dorsey 2000 without giving one).
 """
 
 from __future__ import annotations

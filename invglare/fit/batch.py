@@ -16,8 +16,9 @@ group of photos on a worker and writes their reports. This module:
   compiles a fit config once and reuses it for every photo of the same size;
 - skips photos whose report folder already holds a fit result (:func:`finished`), so an
   interrupted batch resumes where it stopped; reports are written atomically (a whole
-  folder at a time, :func:`invglare.fit.report.write_report`), so a killed run never
-  leaves a half-written one;
+  folder at a time, :func:`invglare.files.atomic.atomic_directory`), so a killed run
+  never leaves a half-written one, and what it left is completed or removed first
+  (:func:`recover_unfinished`);
 - submits one task per group of photos (one photo, or up to K same-size photos for a
   vmapped solve) and collects the outcomes as they finish, with a progress bar over
   photos (:func:`run_tasks`). A photo that fails is recorded with its reason and the
@@ -40,7 +41,6 @@ import dataclasses
 import logging
 import os
 import re
-import shutil
 import uuid
 from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
@@ -236,19 +236,19 @@ def finished(folder: Path) -> FitResult | None:
         return None
 
 
-def remove_stale_temporaries(folder: Path, names: Sequence[str]) -> int:
-    """Remove the hidden temporary folders a killed writer left beside `names`' reports
-    (``.NAME.*.tmp``, see :func:`invglare.fit.report.atomic_directory`). **Returns:** how many."""
-    if not Path(folder).is_dir():
-        return 0
-    wanted = set(names)
-    removed = 0
-    for entry in Path(folder).iterdir():
-        m = re.match(r"^\.(.+)\.[^.]+\.(tmp|old)$", entry.name)
-        if entry.is_dir() and m and m.group(1) in wanted:
-            shutil.rmtree(entry, ignore_errors=True)
-            removed += 1
-    return removed
+def recover_unfinished(folders: Sequence[Path]) -> None:
+    """Complete or remove what a killed run left beside each photo's report folder (a
+    half-installed report is completed, a half-written one removed): taking a folder's
+    lock does that (:func:`invglare.files.atomic.folder_lock`, ``recover_folder``).
+
+    **Raises:** :class:`~invglare.errors.FolderBusyError` if another run writes one of them.
+    """
+    from invglare.files.atomic import folder_lock
+
+    for folder in folders:
+        if Path(folder).parent.is_dir():
+            with folder_lock(folder, option="the photo's report folder"):
+                pass
 
 
 def run_tasks(

@@ -28,22 +28,18 @@ write_report("reports/eye_daylight", result, info)
 
 from __future__ import annotations
 
-import contextlib
 import dataclasses
 import math
 import os
 import re
-import shutil
-import tempfile
-import uuid
-from collections.abc import Iterator, Sequence
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 from jaxtyping import Float
 
-from invglare.files.atomic import dumps_json
+from invglare.files.atomic import atomic_directory, dumps_json
 from invglare.fit.result import FitResult, _clean
 
 _UNITS = (
@@ -107,48 +103,6 @@ class ReportInfo:
     discrete_truth: dict[str, int | None] = dataclasses.field(default_factory=dict)
     view_options: dict[str, dict[str, Any]] = dataclasses.field(default_factory=dict)
     sections: dict[str, tuple[str, list[str], Any]] = dataclasses.field(default_factory=dict)
-
-
-# --------------------------------------------------------------------------------------
-# atomic folder
-
-
-@contextlib.contextmanager
-def atomic_directory(path: str | os.PathLike[str], keep: Sequence[str] = ()) -> Iterator[Path]:
-    """Yield a temporary folder to fill; it replaces `path` as a whole on success.
-
-    The temporary folder is a hidden sibling of `path` (same filesystem, so the
-    renames are atomic). On any exception, ``KeyboardInterrupt`` included, it is
-    removed and an existing `path` is left as it was. Entries of the old `path` named
-    in `keep` (and not written anew) move into the new one: a refit keeps the
-    posterior chain of ``invglare sample``, which may have taken hours.
-    """
-    target = Path(path)
-    target.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{target.name}.", suffix=".tmp", dir=target.parent))
-    umask = os.umask(0)
-    os.umask(umask)
-    tmp.chmod(0o777 & ~umask)  # mkdtemp makes it private; a report folder is an ordinary one
-    try:
-        yield tmp
-        if target.exists():
-            old = target.parent / f".{target.name}.{uuid.uuid4().hex[:12]}.old"
-            os.replace(target, old)
-            try:
-                os.replace(tmp, target)
-            except BaseException:
-                os.replace(old, target)
-                raise
-            for name in keep:
-                # An interruption here leaves the entry in the hidden .old folder, not lost.
-                if (old / name).exists() and not (target / name).exists():
-                    os.replace(old / name, target / name)
-            shutil.rmtree(old, ignore_errors=True)
-        else:
-            os.replace(tmp, target)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
 
 
 # --------------------------------------------------------------------------------------

@@ -33,10 +33,14 @@ A model that renders a whole scene itself, from every pixel rather than light by
 implements ``render_scene(frame, depth, key, *, iterations=None, progress=False)``;
 ``invglare render`` then hands it the frame (and its depth buffer) as a whole.
 
-**Light directions** are ``(x, y)`` in degrees: x to the right, y up, as seen looking out
-through the aperture; ``None`` means the model's own default direction (on axis, or the
-direction leaf a fit adjusts). **State**: animated models take the frame's state as the
-keyword `state` (``None``: at rest); static models accept only ``state=None``.
+**Light directions** are ``(x, y)`` in degrees: x to the right, as seen looking out
+through the aperture, and y along the rows: every image a model returns has its y growing
+with the row index (the grids' convention, :mod:`invglare._core.grids`), so +y is up
+with row 0 at the bottom and *down* a frame shown with row 0 at the top, as image files
+are (and as :func:`invglare.render.light_angles_deg` reads a frame's lights); ``None``
+means the model's own default direction (on axis, or the direction leaf a fit adjusts).
+**State**: animated models take the frame's state as the keyword `state` (``None``: at
+rest); static models accept only ``state=None``.
 
 Adding a model is its file here plus one registration in :mod:`invglare.config.kinds`
 (see ``CONTRIBUTING.md``).

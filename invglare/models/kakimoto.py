@@ -34,6 +34,19 @@ the aperture's ``obstacle_transmission``. (In the paper's eq. 3 the pupil is
 centred at ``-(d_o / f) x_f`` on the obstacle plane; with the image point
 ``x_f = -f tan(a)`` this is the same statement.)
 
+**What follows the paper and what departs.** Eq. 5 (fixed mask) and eq. 3 (the mask
+scrolled with the light, evaluated per light as the paper's implementation does) are the
+paper's, as are the RGB wavelengths 680 / 530 / 460 nm (``colour="paper_rgb"``) and any
+picture as the obstacle or pupil (`obstacle_image`, `pupil_image` of the eye and camera
+apertures, a distance `obstacle_distance_mm` in front of the pupil). Departures, each
+named: PSFs are normalised to unit energy instead of the paper's ``A^2 / (lambda f)^2``
+(the observation model of a fit carries the flux); ``colour="spectral"`` integrates a
+spectrum instead of three lines; structures the raster cannot resolve are refused or
+warned of (:mod:`invglare.models.structures`); and the eye's particles, which the paper's
+eyelash model does not have (Ritschel et al. add them), scatter beyond the raster's band
+in closed form (``wide_angle``). The paper's display pipeline (sigmoid, billboards) is
+the render tier's: :mod:`invglare.render.composite`.
+
 **Apertures.** Any equinox Module with these methods works (see
 :class:`ObstacleAperture`), e.g. :class:`invglare.aperture.camera.CameraAperture`
 and the eye aperture:
@@ -67,6 +80,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.scipy.ndimage import map_coordinates
 from jaxtyping import Array, ArrayLike, Float
 
 from invglare._core.checks import as_float, check_range, choose
@@ -82,6 +96,9 @@ from invglare.models.raster import (
     build_propagator,
     raster_header,
 )
+from invglare.models.structures import check_structures
+from invglare.optics.fraunhofer import transmitted_power
+from invglare.optics.particles import particle_scatter
 from invglare.optics.propagator import AbstractPropagator
 from invglare.optics.spectral import DEFAULT_WAVELENGTHS, Spectrum, parse_wavelengths
 
@@ -90,6 +107,7 @@ __all__ = [
     "COLOURS",
     "MASKINGS",
     "PAPER_RGB_NM",
+    "WIDE_ANGLE",
     "KakimotoGlare",
     "ObstacleAperture",
     "kakimoto_to_config",
@@ -101,6 +119,9 @@ MASKINGS = ("fixed", "position")
 COLOURS = ("paper_rgb", "spectral")
 #: The paper's wavelengths (nm) for the R, G and B channels (sec. 3.2).
 PAPER_RGB_NM = (680.0, 530.0, 460.0)
+#: How an eye's particles scatter beyond the raster's band: averaged over their positions,
+#: with their phases, or not at all (see :meth:`KakimotoGlare.build`).
+WIDE_ANGLE = ("ensemble", "phases", "none")
 
 
 @runtime_checkable
@@ -142,6 +163,8 @@ class KakimotoGlare(AbstractRasterModel):
     - `colour`: ``"paper_rgb"`` or ``"spectral"``, static.
     - `max_light_angle_deg`: the largest light angle the model is meant for (static;
       see :meth:`obstacle_window_mm`).
+    - `wide_angle`: ``"ensemble"``, ``"phases"`` or ``"none"`` (static): how an eye's
+      particles scatter beyond the raster's band (see :meth:`build`).
     """
 
     aperture: Any
@@ -151,6 +174,7 @@ class KakimotoGlare(AbstractRasterModel):
     masking: str = eqx.field(static=True, default="fixed")
     colour: str = eqx.field(static=True, default="paper_rgb")
     max_light_angle_deg: float = eqx.field(static=True, default=0.0)
+    wide_angle: str = eqx.field(static=True, default="ensemble")
     centre: ClassVar[str] = "light"
     animated: ClassVar[bool] = False
 
@@ -163,6 +187,7 @@ class KakimotoGlare(AbstractRasterModel):
             )
         choose("masking", self.masking, MASKINGS)
         choose("colour", self.colour, COLOURS)
+        choose("wide_angle", self.wide_angle, WIDE_ANGLE)
         check_range("obstacle_distance_mm", self.obstacle_distance_mm, 0.0, unit="mm")
         if self.colour == "paper_rgb" and self.spectrum.wavelengths_nm.shape[0] != 3:
             raise ConfigError(
@@ -193,6 +218,7 @@ class KakimotoGlare(AbstractRasterModel):
         reference_wavelength_nm: float = 575.0,
         illuminant: str = "E",
         colourspace: str = "sRGB",
+        wide_angle: str = "ensemble",
     ) -> KakimotoGlare:
         """Choose the sampling for an aperture and validate every choice.
 
@@ -220,6 +246,15 @@ class KakimotoGlare(AbstractRasterModel):
         - `propagation`, `method`, `spectral`, `reference_wavelength_nm`, `illuminant`,
           `colourspace`: as for :meth:`~invglare.models.aperture_psf.AperturePSF.build`
           (`spectral` applies to ``colour="spectral"``).
+        - `wide_angle`: an eye's particles (cornea cells, lens and vitreous particles)
+          diffract far beyond the raster's alias-free band ``lambda / (2 pitch)``. With
+          ``"ensemble"`` (default) or ``"phases"`` an eye with particles may have a
+          Fraunhofer MFT output wider than that band: the raster gives the PSF inside it
+          and the particles' closed-form scatter
+          (:func:`~invglare.optics.particles.particle_scatter`: Babinet's disks, averaged
+          over positions or with their phases) the rest, so the veil reaches the angles
+          the CIE function describes; the pupil's and lashes' own diffraction beyond the
+          band is not represented. ``"none"`` refuses such an output, as for any model.
 
         **Raises:** `PhysicsRangeError` for a pupil larger than `window_mm`, a negative
         obstacle distance, or a sampling that would alias; `ConfigError` for an
@@ -238,6 +273,7 @@ class KakimotoGlare(AbstractRasterModel):
         """
         choose("colour", colour, COLOURS)
         choose("masking", masking, MASKINGS)
+        choose("wide_angle", wide_angle, WIDE_ANGLE)
         check_range("obstacle_distance_mm", obstacle_distance_mm, 0.0, unit="mm")
         check_range("max_light_angle_deg", max_light_angle_deg, 0.0, unit="deg")
         if not max_light_angle_deg < 90.0:
@@ -283,6 +319,16 @@ class KakimotoGlare(AbstractRasterModel):
             window_mm=window_mm,
             propagation=propagation,
             method=method,
+            beyond_band=wide_angle != "none" and bool(getattr(aperture, "particles", ())),
+        )
+        # Structures finer than the raster: gratings it aliases are refused, the rest warned.
+        check_structures(
+            aperture,
+            propagator.grid,
+            tuple(float(w) for w in np.asarray(spectrum.wavelengths_nm).reshape(-1)),
+            None
+            if propagator.method == "transfer"
+            else math.radians(float(propagator.output.half_field_deg)),
         )
         # Apertures whose rasters have data-dependent static shapes (the eye's local stamps)
         # fix them for this grid here, so that the model can be jitted and differentiated.
@@ -297,6 +343,7 @@ class KakimotoGlare(AbstractRasterModel):
             masking=masking,
             colour=colour,
             max_light_angle_deg=float(max_light_angle_deg),
+            wide_angle=wide_angle,
         )
 
     # ----------------------------------------------------------------------------- fields
@@ -306,6 +353,11 @@ class KakimotoGlare(AbstractRasterModel):
         angle = as_float(light_angle_deg)
         return -self.obstacle_distance_mm * jnp.tan(jnp.deg2rad(angle))
 
+    def _shift(self, light_angle_deg, dtype) -> Float[Array, " 2"]:
+        if self.masking == "fixed":
+            return jnp.zeros(2, dtype=dtype)
+        return self.obstacle_shift_mm(light_angle_deg).astype(dtype)
+
     def field(self, light_angle_deg: Float[ArrayLike, " 2"] = (0.0, 0.0)) -> Float[Array, "n n"]:
         """The masked obstacle ``t_o P`` on the propagator's grid, for a light at that angle.
 
@@ -313,17 +365,61 @@ class KakimotoGlare(AbstractRasterModel):
         """
         grid = self.propagator.grid
         pupil = self.aperture.pupil_transmission(grid)
-        if self.masking == "fixed":
-            shift = jnp.zeros(2, dtype=pupil.dtype)
-        else:
-            shift = self.obstacle_shift_mm(light_angle_deg)
+        shift = self._shift(light_angle_deg, pupil.dtype)
         return self.aperture.obstacle_transmission(grid, shift) * pupil
 
+    @property
+    def scatters_beyond_band(self) -> bool:
+        """Whether the output reaches beyond the raster's band with an eye's particles there."""
+        core = getattr(self.propagator, "core_npix", None)
+        return (
+            self.wide_angle != "none"
+            and isinstance(self.aperture, EyeAperture)
+            and bool(self.aperture.particles)
+            and core is not None
+            and core < self.propagator.output.npix
+        )
+
+    def _scatterers(self, light_angle_deg) -> tuple[Array, Array, Array]:
+        """Radii, amplitudes ``w t`` and centres of every particle, for the wide-angle term.
+
+        ``t`` is the light reaching a particle: the open pupil times the (shifted)
+        obstacle, bilinear at its centre.
+        """
+        eye, grid = self.aperture, self.propagator.grid
+        lit = eye.opening(grid)
+        lit = lit * eye.obstacle_transmission(grid, self._shift(light_angle_deg, lit.dtype))
+        centre = grid.npix // 2
+        radii, amps, centres = [], [], []
+        for population in eye.particles:
+            xy = population.centers_mm()
+            rows = xy[:, 1] / grid.pitch_mm + centre
+            cols = xy[:, 0] / grid.pitch_mm + centre
+            t = map_coordinates(lit, [rows, cols], order=1, mode="constant", cval=0.0)
+            radii.append(population.radii_mm())
+            amps.append(population.weights() * t)
+            centres.append(xy)
+        return jnp.concatenate(radii), jnp.concatenate(amps), jnp.concatenate(centres)
+
     def _psf(
-        self, field: Float[Array, "n n"]
+        self, field: Float[Array, "n n"], light_angle_deg=(0.0, 0.0)
     ) -> Float[Array, "npix npix"] | Float[Array, "npix npix 3"]:
-        def monochrome(wavelength_nm):
-            return self.propagator(field, wavelength_nm)
+        if self.scatters_beyond_band:
+            prop = self.propagator
+            radii, amps, centres = self._scatterers(light_angle_deg)
+            power = transmitted_power(field, prop.grid.pitch_mm)
+            beyond = jnp.asarray(_beyond_core(prop.output.npix, prop.core_npix), field.dtype)
+
+            def monochrome(wavelength_nm):
+                veil = particle_scatter(
+                    radii, amps, centres, prop.output, wavelength_nm, power, self.wide_angle
+                )
+                return prop(field, wavelength_nm) + beyond * veil
+
+        else:
+
+            def monochrome(wavelength_nm):
+                return self.propagator(field, wavelength_nm)
 
         if self.colour == "paper_rgb":
             # R, G, B in the order of the spectrum's wavelengths; channels last.
@@ -349,7 +445,7 @@ class KakimotoGlare(AbstractRasterModel):
         """
         angle = light_angle(light_angle_deg)
         check_no_state(self, state)
-        return self._psf(self.field(angle))
+        return self._psf(self.field(angle), angle)
 
     def batch(
         self, light_angles_deg: Float[ArrayLike, "K 2"], batch_size: int | None = None
@@ -375,7 +471,7 @@ class KakimotoGlare(AbstractRasterModel):
         if self.masking == "fixed":
             psf = self._psf(self.field())
             return jnp.broadcast_to(psf, (angles.shape[0], *psf.shape))
-        return map_lights(lambda angle: self._psf(self.field(angle)), angles, batch_size)
+        return map_lights(lambda angle: self._psf(self.field(angle), angle), angles, batch_size)
 
     # ------------------------------------------------------------------ the model interface
 
@@ -441,7 +537,15 @@ class KakimotoGlare(AbstractRasterModel):
 
 
 #: The [model] keys of the Kakimoto choices (beside the propagator's).
-_GLARE_KEYS = ("obstacle_distance_mm", "masking", "colour", "max_light_angle_deg")
+_GLARE_KEYS = ("obstacle_distance_mm", "masking", "colour", "max_light_angle_deg", "wide_angle")
+
+
+def _beyond_core(npix: int, core_npix: int) -> np.ndarray:
+    """1 outside the central ``core_npix`` square of an ``npix`` grid, 0 inside."""
+    inside = np.zeros((npix, npix))
+    lo = npix // 2 - core_npix // 2
+    inside[lo : lo + core_npix, lo : lo + core_npix] = 1.0
+    return 1.0 - inside
 
 
 def _same_grid(a: ApertureGrid, b: ApertureGrid) -> bool:
@@ -486,6 +590,7 @@ def kakimoto_to_config(model: KakimotoGlare) -> dict[str, Any]:
         "colour": model.colour,
         "wavelengths_nm": [float(w) for w in np.asarray(spec.wavelengths_nm, dtype=float)],
         "max_light_angle_deg": float(model.max_light_angle_deg),
+        "wide_angle": model.wide_angle,
         "npix": int(prop.output.npix),
         "pixel_scale_deg": float(prop.output.pixel_scale_deg),
         "aperture_npix": int(prop.grid.npix),

@@ -43,8 +43,12 @@ def build_propagator(
     window_mm: float | None,
     propagation: str,
     method: str,
+    beyond_band: bool = False,
 ) -> AbstractPropagator:
-    """A propagator whose window holds an aperture of `extent_mm` and suits the spectrum."""
+    """A propagator whose window holds an aperture of `extent_mm` and suits the spectrum.
+
+    `beyond_band`: see :func:`~invglare.optics.propagator.make_propagator`.
+    """
     if isinstance(aperture_npix, bool) or not isinstance(aperture_npix, int) or aperture_npix < 8:
         raise PhysicsRangeError(f"aperture_npix must be an integer >= 8, got {aperture_npix}")
     if window_mm is None:
@@ -69,6 +73,8 @@ def build_propagator(
         aperture_npix=aperture_npix,
         propagation=propagation,
         method=method,
+        longest_wavelength_nm=max(computed),
+        beyond_band=beyond_band,
     )
     if propagator.method == "fft" and len(computed) > 1:
         # "auto" chose the FFT for the first wavelength; the others need other scales.
@@ -82,6 +88,7 @@ def build_propagator(
             window_mm=window_mm,
             propagation=propagation,
             method="mft",
+            beyond_band=beyond_band,
         )
     return propagator
 

@@ -8,8 +8,8 @@ Every frame (sec. 5 of the paper):
    ``eqx.tree_at``: pupil diameter, lid openings, and per-particle offsets
    (`Particles.offsets_mm`) moving lens-nucleus particles through the lens mesh and
    vitreous particles with the rigid body; cornea cells and gratings stay put;
-3. the aperture is multiplied by the Fresnel term ``E`` at 575 nm (eq. 3) and
-   Fourier transformed (one FFT): the monochromatic PSF ``F_575``;
+3. the aperture is propagated with the Fresnel term ``E`` at 575 nm (eq. 3; see "The
+   Fresnel term E" below): the monochromatic PSF ``F_575``;
 4. the spectral PSF is the sum of `n` scaled copies of ``F_575`` (n = 32 over
    380-770 nm), weighted in XYZ and turned into linear RGB;
 5. it is convolved with the HDR frame (FFT convolution) and tone-mapped (gamma 2.2 as
@@ -24,20 +24,50 @@ term, and the lids with their lashes while no blink is under way) are rasterised
 per sequence and reused by every frame; a blink re-rasterises the lids of its frames
 only (`lax.cond`).
 
-**Sampling.** The aperture window holds the largest pupil the dynamics can produce
-(eq. 1's upper bound), the PSF is at the FFT's native pixel scale
-``575 nm / (fft_npix * pitch)``. The Fresnel term must be resolved by the raster (the
-propagator refuses it otherwise): with a pupil-to-retina distance of about 17 mm its
-phase oscillates at hundreds of cycles per mm at the pupil's edge, which would take
-thousands of pixels; a real-time raster of a few hundred pixels resolves it at an
-*effective* distance of a few hundred mm (`focal_length_mm`), which keeps the Fresnel
-character of the pattern (Fresnel number ``r**2 / (lambda d)`` of a few to tens) as
-the paper's pre-computed ``E`` texture does. Say so when you quote a distance.
+**The Fresnel term E** (eq. 3, ``fresnel``). The paper multiplies the aperture by
+``E = exp(i pi r^2 / (lambda d))`` with ``d`` the pupil-to-retina distance and takes one
+FFT. Three named choices:
 
-**Brightness.** PSFs have unit energy per wavelength (``brightness="unit"``, as every
-static model), or are scaled by the power the aperture transmits, in mm^2
-(``"transmitted"``): the retinal image then dims with a constricting pupil and goes
-dark during a blink; set the tone map's exposure accordingly.
+- ``"retina"`` (default, the paper's equation as printed): ``E`` at the pupil-to-retina
+  distance `focal_length_mm` (17 mm by default; 17-24 mm in real eyes). There the raster
+  cannot resolve ``E`` (its phase oscillates at hundreds of cycles per mm at the pupil's
+  edge), so eq. 3 is evaluated in its equivalent convolution form, the aperture convolved
+  with the Fresnel kernel (:class:`~invglare.optics.propagator.FresnelTransfer`), which is
+  alias-free at these distances for any raster: the PSF lies on the retina at the
+  aperture pitch (pixels of ``pitch / d`` rad) and does not depend on the raster's size
+  beyond its sampling. Eq. 3 has no lens in it, so at 17 mm it is the pupil's Fresnel
+  shadow (Fresnel number ``r^2 / (lambda d)`` of several hundred): a disk ``p / d`` rad
+  across (20 deg for a 6 mm pupil), fringed at its edge, with the particles' and lashes'
+  diffraction on it. That is what the paper's formula says; a real eye focuses the light
+  (the Fraunhofer pattern of the other models), which the next two choices give.
+- ``"effective"``: ``E`` at an explicit `fresnel_distance_mm`, by one FFT at the native
+  scale. An approximation, named as one: through an eye focused at infinity it is a
+  defocus of ``1000 / d`` dioptres (600 mm: 1.67 D), which gives the pattern a Fresnel
+  character at a distance the raster resolves (the model refuses a raster that aliases
+  ``E`` and says how many samples it needs). The distance is yours, never derived from
+  the raster.
+- ``"none"``: ``E = 1``, the Fraunhofer pattern of an eye in focus (Kakimoto et al.).
+
+**Brightness** (``brightness``). ``"transmitted"`` (default, the paper's eq. 3): the PSF
+carries ``K = 1 / (lambda d)^2`` of eq. 3, whose retinal image holds the power the
+aperture transmits (mm^2 for a unit irradiance): the glare grows with the pupil's area,
+dims as the pupil constricts and goes dark in a blink; set the tone map's exposure for
+it. ``"unit"``: unit energy per wavelength, as every static model (a departure, for
+comparing shapes).
+
+**Field.** The PSF covers the raster's band (the FFT's field, or the image-plane window
+of ``"retina"``): the particles' diffraction beyond it, several degrees for cornea cells,
+is not added here (a :class:`~invglare.errors.RasterWarning` names the raster that would
+carry it); the eye kind adds it in closed form (``wide_angle``,
+:mod:`invglare.optics.particles`).
+
+**Spectrum.** The scaled copies (``spectral = "scaled"``) each keep the reference PSF's
+energy (``copy_weighting = "energy"``, the default: what per-wavelength PSFs of a fixed
+aperture do). The paper's printed sum is a plain look-up ``F_575(x 575 / lambda)``, whose
+copy at ``lambda`` carries ``(lambda / 575)^2`` of it (1.79 at 770 nm, 0.44 at 380 nm
+relative to the default): ``copy_weighting = "paper"`` gives it
+(:func:`invglare.optics.spectral.copy_weights`). The copies' magnification itself is exact
+only for Fraunhofer PSFs (the paper's approximation, kept in every mode).
 """
 
 from __future__ import annotations
@@ -52,7 +82,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float, Key
 
-from invglare._core.checks import as_float, as_key
+from invglare._core.checks import as_float, as_key, is_concrete
 from invglare.aperture.eye import EyeAperture, Particles, eye_to_config
 from invglare.dynamics import (
     DynamicsState,
@@ -64,7 +94,7 @@ from invglare.dynamics import (
 from invglare.dynamics.lens import safe_sqrt
 from invglare.dynamics.noise import uniform
 from invglare.dynamics.pupil import MOON_SPENCER_RANGE_MM
-from invglare.errors import ConfigError, PhysicsRangeError
+from invglare.errors import ConfigError, InputDataError, PhysicsRangeError
 from invglare.models.base import broadcast_image, light_angle, light_angles
 from invglare.models.raster import (
     AbstractRasterModel,
@@ -72,21 +102,39 @@ from invglare.models.raster import (
     default_window_mm,
     raster_header,
 )
+from invglare.models.structures import check_structures
 from invglare.optics.fraunhofer import intensity_fft, transmitted_power
-from invglare.optics.fresnel import fresnel_phase
+from invglare.optics.fresnel import fresnel_chirp_aliased, fresnel_phase
 from invglare.optics.propagator import AbstractPropagator
-from invglare.optics.spectral import DEFAULT_WAVELENGTHS, Spectrum, scaled_copies, xyz_to_rgb
+from invglare.optics.spectral import (
+    DEFAULT_WAVELENGTHS,
+    Spectrum,
+    copy_weights,
+    scaled_copies,
+    xyz_to_rgb,
+)
 
 __all__ = [
     "BRIGHTNESS",
+    "FRESNEL_MODES",
     "SequenceConstants",
     "TemporalGlare",
     "check_n_frames",
     "frame_luminance_cd_m2",
+    "head_motion",
 ]
 
-#: How a frame's PSF is scaled: unit energy, or by the power the aperture transmits (mm^2).
-BRIGHTNESS = ("unit", "transmitted")
+#: How a frame's PSF is scaled: by the power the aperture transmits (mm^2; the paper's K of
+#: eq. 3, the default), or to unit energy.
+BRIGHTNESS = ("transmitted", "unit")
+#: Where eq. 3's Fresnel term E is taken: at the pupil-to-retina distance, at an explicit
+#: effective distance (an approximation), or not at all (E = 1).
+FRESNEL_MODES = ("retina", "effective", "none")
+#: A real eye's pupil-to-retina distance (mm), the default of eq. 3's d.
+EYE_FOCAL_LENGTH_MM = 17.0
+#: The pupil-to-retina distances (mm) ``fresnel = "retina"`` accepts: eyes from a small
+#: child's to a long myope's, with room on each side.
+EYE_DISTANCE_RANGE_MM = (10.0, 40.0)
 #: Regions whose particles the dynamics move.
 _MOVING = ("lens_nucleus", "vitreous")
 # fold_in tag of the particle depths (their coordinate along the optical axis).
@@ -107,7 +155,7 @@ class SequenceConstants(eqx.Module):
     """The per-sequence constants of the pipeline (:meth:`TemporalGlare.sequence_constants`,
     computed inside the traced call and reused by every frame)."""
 
-    fresnel: Array  # E at the reference wavelength
+    fresnel: Array  # E at the reference wavelength ("effective"; 1 otherwise)
     log_static: Array  # log-transmission of the particles and gratings that do not move
     obstacle: Array  # lids and lashes at the resting open fraction
     open_fraction: Array  # that resting open fraction (1 - squint)
@@ -136,7 +184,9 @@ class TemporalGlare(AbstractRasterModel):
       (resampling to a frame's scale needs it concrete under `jit`).
     - `lids_move`: static, set by :meth:`build` from whether the dynamics blink: when
       False the lids and lashes are rasterised once per sequence and never per frame.
-    - `brightness`: ``"unit"`` or ``"transmitted"`` (static; see the module docstring).
+    - `brightness`: ``"transmitted"`` or ``"unit"`` (static; see the module docstring).
+    - `fresnel`: ``"retina"``, ``"effective"`` or ``"none"`` (static; the module
+      docstring); `fresnel_distance_mm`: the effective distance of ``"effective"``.
     - `tonemap_name`, `tonemap_params`: the display operator and its parameters (static,
       plain data: :mod:`invglare.render.temporal_frames` checks and applies them).
 
@@ -155,7 +205,9 @@ class TemporalGlare(AbstractRasterModel):
     fps: float = eqx.field(static=True)
     lids_move: bool = eqx.field(static=True, default=True)
     psf_scale_deg: float = eqx.field(static=True, default=0.0)
-    brightness: str = eqx.field(static=True, default="unit")
+    brightness: str = eqx.field(static=True, default="transmitted")
+    fresnel: str = eqx.field(static=True, default="retina")
+    fresnel_distance_mm: float | None = eqx.field(static=True, default=None)
     tonemap_name: str = eqx.field(static=True, default="gamma")
     tonemap_params: tuple[tuple[str, float], ...] = eqx.field(
         static=True, default=(("exposure", 1.0), ("gamma", 2.2))
@@ -171,7 +223,9 @@ class TemporalGlare(AbstractRasterModel):
         eye: EyeAperture,
         dynamics: EyeDynamics | None = None,
         *,
-        focal_length_mm: float | None = None,
+        focal_length_mm: float = EYE_FOCAL_LENGTH_MM,
+        fresnel: str = "retina",
+        fresnel_distance_mm: float | None = None,
         npix: int = 512,
         aperture_npix: int | None = None,
         window_mm: float | None = None,
@@ -183,7 +237,8 @@ class TemporalGlare(AbstractRasterModel):
         key: Key[Array, ""] | int = 0,
         field_luminance_cd_m2: float = 100.0,
         luminance_scale: float = 1.0,
-        brightness: str = "unit",
+        brightness: str = "transmitted",
+        copy_weighting: str = "energy",
         tonemap_name: str = "gamma",
         tonemap_params: dict[str, float] | None = None,
     ) -> TemporalGlare:
@@ -194,9 +249,13 @@ class TemporalGlare(AbstractRasterModel):
         - `eye`: the eye at rest; its pupil diameter is the mean diameter when
           ``dynamics.pupil.from_luminance`` is False.
         - `dynamics`: :class:`~invglare.dynamics.EyeDynamics` (default: the paper's).
-        - `focal_length_mm`: distance (mm) in the Fresnel term ``E`` (see the module
-          docstring: an effective distance the raster resolves); default: 10 % beyond
-          the shortest one the raster resolves at the window's edge.
+        - `focal_length_mm`: pupil-to-retina distance ``d`` (mm; 17 by default), eq. 3's
+          distance with ``fresnel="retina"``.
+        - `fresnel`: ``"retina"`` (E at `focal_length_mm`, alias-free by the Fresnel
+          kernel), ``"effective"`` (E at `fresnel_distance_mm`, an approximation: a defocus
+          of ``1000 / d`` D) or ``"none"`` (E = 1); see the module docstring.
+        - `fresnel_distance_mm`: the effective distance (mm), required by ``"effective"``
+          and refused otherwise.
         - `npix`: output PSF size (FFT size, px).
         - `aperture_npix`: aperture raster size (default ``npix // 2``, the FFT pads 2x).
         - `window_mm`: aperture window (default: the largest pupil the dynamics reach
@@ -209,7 +268,9 @@ class TemporalGlare(AbstractRasterModel):
         - `key`: key (or int seed) of the dynamics.
         - `field_luminance_cd_m2`: default adaptation luminance (cd/m^2).
         - `luminance_scale`: cd/m^2 per frame pixel unit.
-        - `brightness`: ``"unit"`` or ``"transmitted"``.
+        - `brightness`: ``"transmitted"`` (eq. 3's K: the PSF holds the transmitted power,
+          mm^2) or ``"unit"``.
+        - `copy_weighting`: ``"energy"`` or ``"paper"`` (the module docstring).
         - `tonemap_name`, `tonemap_params`: a tone map of :data:`invglare.render.TONEMAPS`
           and its keyword parameters (default gamma 2.2, exposure 1), kept as plain data;
           the render tier checks them against its registry when it displays a frame
@@ -232,6 +293,32 @@ class TemporalGlare(AbstractRasterModel):
             raise ConfigError(f"dynamics must be an EyeDynamics, got {type(dynamics).__name__}")
         if brightness not in BRIGHTNESS:
             raise ConfigError(f"brightness = {brightness!r} is not one of {', '.join(BRIGHTNESS)}")
+        if fresnel not in FRESNEL_MODES:
+            raise ConfigError(f"fresnel = {fresnel!r} is not one of {', '.join(FRESNEL_MODES)}")
+        if (fresnel == "effective") != (fresnel_distance_mm is not None):
+            raise ConfigError(
+                "fresnel = 'effective' needs fresnel_distance_mm (the effective distance of E, "
+                "mm), and only it takes one"
+                if fresnel == "effective"
+                else f"fresnel_distance_mm is the distance of fresnel = 'effective', not of "
+                f"fresnel = {fresnel!r}; drop it or set fresnel = 'effective'"
+            )
+        for name, value in (
+            ("focal_length_mm", focal_length_mm),
+            ("fresnel_distance_mm", fresnel_distance_mm),
+        ):
+            if value is not None and not (
+                isinstance(value, int | float) and math.isfinite(value) and value > 0
+            ):
+                raise PhysicsRangeError(f"{name} must be a finite number > 0 mm, got {value!r}")
+        lo_d, hi_d = EYE_DISTANCE_RANGE_MM
+        if fresnel == "retina" and not lo_d <= focal_length_mm <= hi_d:
+            raise PhysicsRangeError(
+                f"focal_length_mm = {focal_length_mm:g} is eq. 3's pupil-to-retina distance, "
+                f"{lo_d:g}-{hi_d:g} mm in an eye; for E at an effective distance (an "
+                f"approximation) set fresnel = 'effective' and fresnel_distance_mm = "
+                f"{focal_length_mm:g}"
+            )
         if not (isinstance(fps, int | float) and math.isfinite(fps) and fps > 0):
             raise PhysicsRangeError(f"fps must be a finite number > 0 frames/s, got {fps!r}")
         if tonemap_params is None:
@@ -295,17 +382,13 @@ class TemporalGlare(AbstractRasterModel):
         aperture_npix = npix // 2 if aperture_npix is None else aperture_npix
         if window_mm is None:
             window_mm = default_window_mm(extent, int(aperture_npix))
-        if focal_length_mm is None:
-            # E's local frequency r / (lambda d) at the window's edge must stay below the
-            # raster's Nyquist frequency aperture_npix / (2 window).
-            nyquist = 0.5 * int(aperture_npix) / window_mm
-            focal_length_mm = 1.1 * (0.5 * window_mm) / (reference_wavelength_nm * 1e-6 * nyquist)
         spectrum = Spectrum.build(
             wavelengths_nm,
             spectral="scaled",
             reference_wavelength_nm=reference_wavelength_nm,
             illuminant=illuminant,
             colourspace=colourspace,
+            copy_weighting=copy_weighting,
         )
         propagator = build_propagator(
             extent,
@@ -315,8 +398,21 @@ class TemporalGlare(AbstractRasterModel):
             pixel_scale_deg=None,
             aperture_npix=aperture_npix,
             window_mm=window_mm,
-            propagation="fresnel",
-            method="fft",
+            propagation="fresnel" if fresnel == "retina" else "fraunhofer",
+            method="transfer" if fresnel == "retina" else "fft",
+        )
+        if fresnel == "effective":
+            _check_effective_distance(
+                propagator.grid, reference_wavelength_nm, float(fresnel_distance_mm)
+            )
+        # Structures finer than the raster: gratings it aliases are refused, the rest warned.
+        check_structures(
+            eye,
+            propagator.grid,
+            tuple(float(w) for w in np.asarray(spectrum.wavelengths_nm).reshape(-1)),
+            None
+            if fresnel == "retina"
+            else math.radians(float(propagator.output.half_field_deg)),
         )
         return cls(
             eye=eye.with_stamp_windows(propagator.grid),
@@ -330,6 +426,8 @@ class TemporalGlare(AbstractRasterModel):
             lids_move=dynamics.lids.blinks,
             psf_scale_deg=float(propagator.output.pixel_scale_deg),
             brightness=brightness,
+            fresnel=fresnel,
+            fresnel_distance_mm=None if fresnel_distance_mm is None else float(fresnel_distance_mm),
             tonemap_name=tonemap_name,
             tonemap_params=tuple(sorted((k, float(v)) for k, v in params.items())),
         )
@@ -361,10 +459,25 @@ class TemporalGlare(AbstractRasterModel):
         """The dynamics' numbers for the frame `state` is at."""
         return self.dynamics.values(state, self.key, self.eye.pupil.diameter_mm)
 
-    def advance(self, state: DynamicsState, frame_luminance: ArrayLike) -> DynamicsState:
-        """The state one frame later, after a frame of mean luminance `frame_luminance` (cd/m^2)."""
+    def advance(
+        self,
+        state: DynamicsState,
+        frame_luminance: ArrayLike,
+        head_acceleration_rad_s2: Float[ArrayLike, " 3"] | None = None,
+    ) -> DynamicsState:
+        """The state one frame later, after a frame of mean luminance `frame_luminance` (cd/m^2).
+
+        `head_acceleration_rad_s2`: the observer's angular acceleration during the frame
+        (rad/s^2, ``(3,)``: x, y in the pupil plane, z along the axis), the paper's
+        "observer motion" that swings the vitreous; None: a still head.
+        """
         return self.dynamics.step(
-            state, frame_luminance, self.frame_s, self.key, self.eye.pupil.diameter_mm
+            state,
+            frame_luminance,
+            self.frame_s,
+            self.key,
+            self.eye.pupil.diameter_mm,
+            head_acceleration_rad_s2,
         )
 
     # ----------------------------------------------------------------------------- aperture
@@ -448,8 +561,12 @@ class TemporalGlare(AbstractRasterModel):
                 ),
             )
         return SequenceConstants(
-            fresnel=fresnel_phase(
-                grid, self.spectrum.reference_wavelength_nm, self.propagator.focal_length_mm
+            fresnel=(
+                fresnel_phase(
+                    grid, self.spectrum.reference_wavelength_nm, self.fresnel_distance_mm
+                )
+                if self.fresnel == "effective"
+                else jnp.ones((), jnp.result_type(grid.pitch_mm, float))
             ),
             log_static=log_static,
             obstacle=rest.obstacle_transmission(grid),
@@ -463,10 +580,10 @@ class TemporalGlare(AbstractRasterModel):
         log_t = static.log_static
         for i in self._moving_indices():
             log_t = log_t + eye.particles[i].log_transmission(grid)
-        pupil = eye.pupil.coverage(grid) * jnp.exp(log_t)
-        if eye.lids is None:
+        pupil = eye.opening(grid) * jnp.exp(log_t)
+        if eye.lids is None and eye.obstacle_image is None:
             return pupil
-        if not self.lids_move:
+        if not self.lids_move or eye.lids is None:
             return pupil * static.obstacle
         obstacle = jax.lax.cond(
             values.lid_open_fraction == static.open_fraction,
@@ -484,7 +601,12 @@ class TemporalGlare(AbstractRasterModel):
 
     def _mono_psf(self, static: SequenceConstants, aperture: Array) -> Float[Array, "npix npix"]:
         prop = self.propagator
-        psf = intensity_fft(aperture * static.fresnel, prop.fft_npix, prop.output.npix)
+        if self.fresnel == "retina":
+            psf = prop(aperture, self.spectrum.reference_wavelength_nm)
+        elif self.fresnel == "effective":
+            psf = intensity_fft(aperture * static.fresnel, prop.fft_npix, prop.output.npix)
+        else:
+            psf = intensity_fft(aperture, prop.fft_npix, prop.output.npix)
         if self.brightness == "transmitted":
             psf = psf * transmitted_power(aperture, prop.grid.pitch_mm)
         return psf
@@ -495,8 +617,8 @@ class TemporalGlare(AbstractRasterModel):
             return mono[None]
         spec = self.spectrum
         factors = spec.wavelengths_nm.astype(mono.dtype) / spec.reference_wavelength_nm
-        weights = xyz_to_rgb(spec.weights_xyz.astype(mono.dtype), spec.colourspace)
-        return scaled_copies(mono, factors, weights)
+        weights = copy_weights(spec.weights_xyz.astype(mono.dtype), factors, spec.copy_weighting)
+        return scaled_copies(mono, factors, xyz_to_rgb(weights, spec.colourspace))
 
     def psf_cf(
         self, static: SequenceConstants, state: DynamicsState
@@ -509,8 +631,9 @@ class TemporalGlare(AbstractRasterModel):
     def psf(self, state: DynamicsState | None = None) -> Float[Array, "npix npix *c"]:
         """The PSF of one frame: ``(npix, npix, 3)`` linear RGB, or ``(npix, npix)`` mono.
 
-        Energy per pixel at :attr:`pixel_scale_deg`, centre at ``npix // 2``; unit energy
-        (Y) with ``brightness="unit"``. `state` defaults to :meth:`init_state`.
+        Energy per pixel at :attr:`pixel_scale_deg`, centre at ``npix // 2``: Y sums to
+        the transmitted power (mm^2) with ``brightness="transmitted"``, to 1 with
+        ``"unit"``. `state` defaults to :meth:`init_state`.
         """
         state = self.init_state() if state is None else state
         cf = self.psf_cf(self.sequence_constants(), state)
@@ -538,9 +661,12 @@ class TemporalGlare(AbstractRasterModel):
         return self.aperture()
 
     def header(self) -> dict[str, Any]:
-        if self.brightness == "unit":
-            return raster_header(self)
-        return raster_header(self, "transmitted power per pixel (mm^2 of the aperture)")
+        header = (
+            raster_header(self)
+            if self.brightness == "unit"
+            else raster_header(self, "transmitted power per pixel (mm^2 of the aperture)")
+        )
+        return {**header, "fresnelTerm": self.fresnel}
 
     def sized_for(self, others) -> TemporalGlare:
         return self  # the eye's windows are sized for the dynamics' range when built
@@ -559,6 +685,7 @@ class TemporalGlare(AbstractRasterModel):
             "field_luminance_cd_m2": float(self.field_luminance_cd_m2),
             "luminance_scale": float(self.luminance_scale),
             "brightness": self.brightness,
+            "fresnel": self.fresnel,
             "tonemap": self.tonemap_name,
             "tonemap_params": dict(self.tonemap_params),
             "eye": eye_to_config(self.eye),
@@ -566,6 +693,8 @@ class TemporalGlare(AbstractRasterModel):
                 name: _part_table(getattr(self.dynamics, name)) for name in _DYNAMICS_PARTS
             },
         }
+        if self.fresnel_distance_mm is not None:
+            table["fresnel_distance_mm"] = self.fresnel_distance_mm
         return {
             "model": table,
             "output": {"npix": prop.output.npix},
@@ -575,6 +704,7 @@ class TemporalGlare(AbstractRasterModel):
                 "reference_wavelength_nm": spec.reference_wavelength_nm,
                 "illuminant": spec.illuminant,
                 "colourspace": spec.colourspace,
+                "copy_weighting": spec.copy_weighting,
             },
         }
 
@@ -583,6 +713,7 @@ class TemporalGlare(AbstractRasterModel):
         n_frames: int,
         luminance_cd_m2: Float[ArrayLike, "*n"] | None = None,
         state: DynamicsState | None = None,
+        head_acceleration_rad_s2: Float[ArrayLike, "*n 3"] | None = None,
     ) -> tuple[DynamicsState, Float[Array, "n npix npix *c"]]:
         """PSFs of `n_frames` consecutive frames, by one `lax.scan`.
 
@@ -593,6 +724,8 @@ class TemporalGlare(AbstractRasterModel):
           ``(n_frames,)`` array; default the model's `field_luminance_cd_m2`.
         - `state`: the first frame's state (default :meth:`init_state` adapted to the
           first frame's luminance).
+        - `head_acceleration_rad_s2`: the observer's angular acceleration (rad/s^2), one
+          ``(3,)`` for every frame or ``(n_frames, 3)``; default a still head.
 
         **Returns:** the state after the last frame, and the PSFs.
         """
@@ -601,13 +734,49 @@ class TemporalGlare(AbstractRasterModel):
         lum = jnp.broadcast_to(lum, (n_frames,))
         state = self.init_state(lum[0]) if state is None else state
         static = self.sequence_constants()
+        head = head_motion(head_acceleration_rad_s2, n_frames, lum.dtype)
 
-        def body(s, frame_lum):
+        def body(s, inputs):
+            frame_lum, frame_head = inputs
             cf = self.psf_cf(static, s)
-            return self.advance(s, frame_lum), cf
+            return self.advance(s, frame_lum, frame_head), cf
 
-        state, cfs = jax.lax.scan(body, state, lum)
+        state, cfs = jax.lax.scan(body, state, (lum, head))
         return state, (cfs[:, 0] if not self.is_spectral else jnp.moveaxis(cfs, 1, -1))
+
+
+def _check_effective_distance(grid, wavelength_nm: float, distance_mm: float) -> None:
+    """Refuse an effective distance whose E the raster aliases, naming the raster it needs."""
+    edge_mm = 0.5 * float(grid.width_mm)
+    if fresnel_chirp_aliased(grid, wavelength_nm, distance_mm, edge_mm):
+        chirp = edge_mm / (wavelength_nm * 1e-6 * distance_mm)
+        needed = math.ceil(2.0 * chirp * float(grid.width_mm))
+        shortest = edge_mm * 2.0 * float(grid.pitch_mm) / (wavelength_nm * 1e-6)
+        raise PhysicsRangeError(
+            f"fresnel_distance_mm = {distance_mm:g}: E oscillates at {chirp:.4g} cycles/mm at "
+            f"the window's edge ({edge_mm:g} mm), above the {0.5 / float(grid.pitch_mm):.4g} "
+            f"the {grid.npix}-sample raster resolves; use aperture_npix >= {needed}, a "
+            f"distance >= {shortest:.4g} mm, or fresnel = 'retina' (alias-free at any raster)"
+        )
+
+
+def head_motion(
+    head_acceleration_rad_s2: Float[ArrayLike, "*n 3"] | None, n_frames: int, dtype
+) -> Float[Array, "n 3"]:
+    """Per-frame observer angular accelerations ``(n_frames, 3)`` (rad/s^2; zeros if None).
+
+    **Raises:** `InputDataError` for another shape or non-finite values.
+    """
+    if head_acceleration_rad_s2 is None:
+        return jnp.zeros((n_frames, 3), dtype)
+    head = as_float(head_acceleration_rad_s2)
+    if head.shape not in ((3,), (n_frames, 3)):
+        raise InputDataError(
+            f"head_acceleration_rad_s2 must have shape (3,) or ({n_frames}, 3), got {head.shape}"
+        )
+    if is_concrete(head) and not bool(jnp.all(jnp.isfinite(head))):
+        raise InputDataError("head_acceleration_rad_s2 must be finite")
+    return jnp.broadcast_to(head, (n_frames, 3)).astype(dtype)
 
 
 def check_n_frames(n_frames: int) -> None:

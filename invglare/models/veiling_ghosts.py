@@ -8,20 +8,28 @@ that forms the source's direct image.
 - :class:`GhostSet`: ghosts given by their parameters (what a fit adjusts). Each
   ghost has a centre, a radius, a peak intensity and an edge softness, and moves
   with the light along the line through the screen centre: its centre is
-  ``position_deg + ratio * light_angle_deg``. That is the small-angle form of the
-  paraxial law (a ghost's image height is a fixed multiple of the source's, sec. 8);
-  ``ratio = 0`` pins a ghost to the screen.
+  ``position_deg + ratio * screen_position_deg(light_angle_deg)``, the paraxial law (a
+  ghost's image height is a fixed multiple of the source's, sec. 8) on the screen
+  below; ``ratio = 0`` pins a ghost to the screen.
 - :class:`LensGhosts`: ghosts computed from a lens prescription by paraxial matrix
   optics (:mod:`invglare.optics.paraxial`): for every path with 2, 4, ... reflections,
   the spot's centre, size and energy on the sensor, as functions of the light
   direction and of every lens parameter (curvatures, spacings, indices, coating
   reflectances, semi-apertures).
 
-**Screen coordinates.** The screen is measured in degrees of field angle, x to the
-right and y up, with the optical axis at the centre: a sensor point at height ``h``
-(mm) is drawn at ``atan(h / EFL)`` on each axis. The light's direct image then
-sits at exactly its direction ``(a_x, a_y)``, where the other models of invglare
-place a light.
+**Screen coordinates.** The screen is the sensor plane, measured in units of the
+effective focal length and written in degrees: a sensor point at ``(x, y)`` mm is at
+``deg(x / EFL), deg(y / EFL)`` (:func:`screen_position_deg` of its field angle is
+``deg(tan(angle))``), with the optical axis at the centre. One linear mapping serves
+ghost centres and radii alike, so a paraxial spot (a disk on the sensor) stays a disk
+of the right size wherever it lands; it is a rectilinear camera's frame, uniform in
+sensor millimetres. For small angles a screen degree is a degree of field angle (the
+two differ by 1 % at 10 deg, 9 % at 30 deg); a light at direction ``a`` has its direct
+image at ``screen_position_deg(a)``, and a screen point ``s`` is the image of the
+direction :func:`direction_of_screen_deg` ``(s) = deg(atan(s))``. x grows with the
+column, y with the row (row 0 first): in a frame shown with row 0 at the top, as image
+files are, +y points *down* the picture. ``light_angle_deg`` uses the same axes, so a
+light at ``(a_x, a_y)`` with ``a_y > 0`` images below the centre row of that display.
 
 **Intensity.** A ghost's `intensity_per_sr` is the peak value of its glare spread
 function, in sr⁻¹ (fraction of the source's flux per steradian of field), so a
@@ -43,7 +51,24 @@ from invglare.errors import ConfigError, PhysicsRangeError
 from invglare.models.veiling_series import PROFILES, profile_area
 from invglare.optics.paraxial import Lens, ghost_paths, ghost_spots
 
-__all__ = ["GhostSet", "LensGhosts"]
+__all__ = ["GhostSet", "LensGhosts", "direction_of_screen_deg", "screen_position_deg"]
+
+
+def screen_position_deg(light_angle_deg: Float[ArrayLike, "*shape"]) -> Float[Array, "*shape"]:
+    """Where a light's direct image lands on the screen (deg), per axis: ``deg(tan(angle))``.
+
+    The screen is the sensor in units of the EFL (see the module docstring); each axis's
+    slope is ``tan`` of that axis's angle, as for the paraxial ghost trace.
+    """
+    return jnp.rad2deg(jnp.tan(jnp.deg2rad(as_float(light_angle_deg))))
+
+
+def direction_of_screen_deg(screen_deg: Float[ArrayLike, "*shape"]) -> Float[Array, "*shape"]:
+    """The light direction (deg) whose direct image lands at `screen_deg`: ``deg(atan(s))``.
+
+    The inverse of :func:`screen_position_deg`, e.g. for the light of a frame's pixel.
+    """
+    return jnp.rad2deg(jnp.arctan(jnp.deg2rad(as_float(screen_deg))))
 
 
 
@@ -88,11 +113,13 @@ class GhostSet(eqx.Module):
 
     **Fields** (``K`` ghosts; all are parameters):
 
-    - `position_deg`: ``(K, 2)`` centre (x, y) on the screen for a light on the axis (deg).
+    - `position_deg`: ``(K, 2)`` centre (x, y) on the screen for a light on the axis (deg;
+      the screen of the module docstring).
     - `radius_deg`: ``(K,)`` support radius (deg).
     - `intensity_per_sr`: ``(K,)`` peak of the ghost's glare spread function (sr⁻¹).
     - `softness_deg`: ``(K,)`` standard deviation of the Gaussian edge blur (deg).
-    - `ratio`: ``(K,)`` how far the ghost moves per degree the light moves (0: fixed).
+    - `ratio`: ``(K,)`` how far the ghost moves per screen degree the light's direct image
+      moves (0: fixed).
     - `transmission`: fraction of the light in the source's direct image (for the
       veiling glare index; 1 if unknown).
 
@@ -170,11 +197,13 @@ class GhostSet(eqx.Module):
     def at(self, light_angle_deg: Float[ArrayLike, " 2"], profile: str = "disk") -> GhostSet:
         """The ghosts for a light at `light_angle_deg` (deg): moved, with ``ratio`` 0.
 
-        `profile` is accepted for symmetry with :meth:`LensGhosts.at` and unused:
-        the intensities are given directly.
+        A ghost moves by ``ratio`` times the light's direct image on the screen,
+        :func:`screen_position_deg` of the angle (the paraxial law, exact for a lens's
+        ghosts). `profile` is accepted for symmetry with :meth:`LensGhosts.at` and
+        unused: the intensities are given directly.
         """
-        angle = as_float(light_angle_deg)
-        moved = self.position_deg + self.ratio[:, None] * angle[None, :]
+        image = screen_position_deg(light_angle_deg)
+        moved = self.position_deg + self.ratio[:, None] * image[None, :]
         return eqx.tree_at(
             lambda g: (g.position_deg, g.ratio), self, (moved, jnp.zeros_like(self.ratio))
         )
@@ -267,10 +296,9 @@ class LensGhosts(eqx.Module):
         return max(len(p) for p in self.paths)
 
     def _to_screen(self, centre_mm, radius_mm):
+        # One linear map for centres and radii (the module's screen): h / EFL.
         efl = self.lens.effective_focal_length_mm()
-        centre_deg = jnp.rad2deg(jnp.arctan(centre_mm / efl))
-        radius_rad = radius_mm / jnp.abs(efl)
-        return centre_deg, radius_rad
+        return jnp.rad2deg(centre_mm / efl), radius_mm / jnp.abs(efl)
 
     def spots(
         self, light_angle_deg: Float[ArrayLike, " 2"] = (0.0, 0.0)

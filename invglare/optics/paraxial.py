@@ -363,6 +363,35 @@ class Lens(eqx.Module):
         m = self.matrix()
         return -m[0, 0] / m[1, 0]
 
+    def axial_heights(self) -> Float[Array, " S"]:
+        """Height at each surface of the axial ray entering parallel at height 1 mm.
+
+        The marginal ray of a distant source on the axis, scaled: a beam entering with
+        radius ``rho`` meets surface ``s`` with radius ``rho * |axial_heights()[s]|``.
+        """
+        n_b = self.index_before()
+        y, u = jnp.ones((), self.curvature_per_mm.dtype), jnp.zeros((), self.index.dtype)
+        heights = []
+        for s in range(self.n_surfaces):
+            heights.append(y)
+            m = refraction_matrix(self.curvature_per_mm[s], n_b[s], self.index[s])
+            y, u = m[0, 0] * y + m[0, 1] * u, m[1, 0] * y + m[1, 1] * u
+            y = y + self.thickness_mm[s] * u
+        return jnp.stack(heights)
+
+    def entrance_pupil_radius_mm(self) -> Float[Array, ""]:
+        """Radius (mm) of the widest axial beam from a distant source that every surface passes.
+
+        ``min_s semi_aperture[s] / |axial_heights()[s]|``: the stop sets it when the lens
+        is designed so, a smaller clear aperture before or after it otherwise (the
+        axial beam is then vignetted, and the f-number slower than the stop's).
+        """
+        return jnp.min(self.semi_aperture_mm / jnp.abs(self.axial_heights()))
+
+    def f_number(self) -> Float[Array, ""]:
+        """Paraxial f-number of a distant source on the axis: ``EFL / (2 entrance radius)``."""
+        return self.effective_focal_length_mm() / (2.0 * self.entrance_pupil_radius_mm())
+
     def focused(self) -> Lens:
         """A copy with the sensor at the rear focal plane (sharp image of a distant source)."""
         t = self.thickness_mm.at[-1].set(self.back_focal_distance_mm())

@@ -13,6 +13,8 @@ of :mod:`invglare.optics.fraunhofer`).
 | `FraunhoferMFT` | `fraunhofer`, `mft`     | matrix Fourier transform: any scale and field   |
 | `FresnelFFT`    | `fresnel`, `fft`        | eq. 3 of Ritschel et al. (quadratic phase E)    |
 | `FresnelMFT`    | `fresnel`, `mft`        | the same at any output sampling                 |
+| `FresnelTransfer` | `fresnel`, `transfer` | eq. 3 on the image plane by the Fresnel kernel: |
+|                 |                         | alias-free at short distances (the eye's 17 mm) |
 
 :func:`make_propagator` turns the config's strings into one of them, checking that the
 sampling cannot alias. A propagation that does not start from a raster (an analytic
@@ -35,11 +37,12 @@ from jaxtyping import Array, ArrayLike, Float, Inexact
 from invglare._core.checks import check_positive, choose
 from invglare._core.grids import AngularGrid, ApertureGrid
 from invglare.errors import ConfigError, PhysicsRangeError
+from invglare.optics.fourier import pad_centred
 from invglare.optics.fraunhofer import fraunhofer_mft, intensity_fft
-from invglare.optics.fresnel import fresnel_phase
+from invglare.optics.fresnel import fresnel_near_field, fresnel_phase, near_field_fft_npix
 
 PROPAGATIONS = ("fraunhofer", "fresnel")
-METHODS = ("auto", "fft", "mft")
+METHODS = ("auto", "fft", "mft", "transfer")
 
 #: Largest FFT the automatic method choice will pick before falling back to the MFT.
 MAX_AUTO_FFT_NPIX = 4096
@@ -84,13 +87,23 @@ class FraunhoferFFT(AbstractPropagator):
 
 
 class FraunhoferMFT(AbstractPropagator):
-    """Far field by matrix Fourier transform: any output pixel scale and field."""
+    """Far field by matrix Fourier transform: any output pixel scale and field.
 
+    With `core_npix` (static) below the output's size, the transform covers only the
+    central ``core_npix`` pixels, the raster's alias-free band, and the rest of the output
+    is 0: what lies beyond is left to a closed-form term of the model (the wide-angle
+    scatter of :mod:`invglare.optics.particles`).
+    """
+
+    core_npix: int | None = eqx.field(static=True, default=None, kw_only=True)
     propagation: ClassVar[str] = "fraunhofer"
     method: ClassVar[str] = "mft"
 
     def __call__(self, field, wavelength_nm):
-        return fraunhofer_mft(field, self.grid, wavelength_nm, self.output)
+        if self.core_npix is None or self.core_npix >= self.output.npix:
+            return fraunhofer_mft(field, self.grid, wavelength_nm, self.output)
+        core = AngularGrid(self.core_npix, self.output.pixel_scale_deg)
+        return pad_centred(fraunhofer_mft(field, self.grid, wavelength_nm, core), self.output.npix)
 
 
 class FresnelFFT(AbstractPropagator):
@@ -116,10 +129,31 @@ class FresnelMFT(AbstractPropagator):
         return fraunhofer_mft(field, self.grid, wavelength_nm, self.output)
 
 
+class FresnelTransfer(AbstractPropagator):
+    """Eq. 3 of Ritschel et al. at a short distance, on the image plane, without aliasing.
+
+    The aperture convolved with the Fresnel kernel (:func:`~invglare.optics.fresnel.
+    fresnel_near_field`): output pixels are the aperture pitch on the image plane,
+    ``pitch / focal_length`` rad, the same at every wavelength. It needs the transfer
+    function sampled (``fft_npix * pitch^2 >= lambda d``), which short distances make easy;
+    the single-FFT form (:class:`FresnelFFT`) needs the phase ``E`` resolved instead,
+    which long distances make easy.
+    """
+
+    fft_npix: int = eqx.field(static=True, kw_only=True)
+    propagation: ClassVar[str] = "fresnel"
+    method: ClassVar[str] = "transfer"
+
+    def __call__(self, field, wavelength_nm):
+        return fresnel_near_field(
+            field, self.grid, wavelength_nm, self.focal_length_mm, self.fft_npix, self.output.npix
+        )
+
+
 #: (propagation, method) of the config → the final class.
 PROPAGATOR_CLASSES: dict[tuple[str, str], type[AbstractPropagator]] = {
     (cls.propagation, cls.method): cls
-    for cls in (FraunhoferFFT, FraunhoferMFT, FresnelFFT, FresnelMFT)
+    for cls in (FraunhoferFFT, FraunhoferMFT, FresnelFFT, FresnelMFT, FresnelTransfer)
 }
 
 
@@ -140,6 +174,8 @@ def make_propagator(
     aperture_npix: int = 256,
     propagation: str = "fraunhofer",
     method: str = "auto",
+    longest_wavelength_nm: float | None = None,
+    beyond_band: bool = False,
 ) -> AbstractPropagator:
     """The propagator for a sampling, refusing ones that would alias.
 
@@ -151,14 +187,21 @@ def make_propagator(
       pixel scale ``lambda / (fft_npix * pitch)``).
     - `shortest_wavelength_nm`: the shortest wavelength an MFT will evaluate; the
       output field must stay within its alias-free band.
+    - `longest_wavelength_nm`: the longest wavelength evaluated (``"transfer"`` samples
+      its transfer function for it); default the larger of the two above.
+    - `beyond_band`: let a Fraunhofer MFT output reach beyond the raster's alias-free
+      band: the transform covers the band's pixels (`FraunhoferMFT.core_npix`) and the
+      model fills the rest in closed form; otherwise such an output is refused.
     - `npix`, `pixel_scale_deg`: the output grid; without a pixel scale, the FFT's
       native one (with ``fft_npix = max(npix, 2 * aperture_npix)``).
     - `propagation`: ``"fraunhofer"`` or ``"fresnel"``.
     - `method`: ``"fft"``, ``"mft"`` or ``"auto"`` (the FFT when it produces the
-      requested pixel scale exactly, else the MFT).
+      requested pixel scale exactly, else the MFT); ``"transfer"`` (Fresnel only) for the
+      image-plane near field of :class:`FresnelTransfer`, whose pixels are
+      ``pitch / focal_length_mm`` rad (a `pixel_scale_deg` must equal that).
 
-    **Returns:** a :class:`FraunhoferFFT`, :class:`FraunhoferMFT`, :class:`FresnelFFT` or
-    :class:`FresnelMFT`.
+    **Returns:** a :class:`FraunhoferFFT`, :class:`FraunhoferMFT`, :class:`FresnelFFT`,
+    :class:`FresnelMFT` or :class:`FresnelTransfer`.
 
     **Example:**
 
@@ -175,6 +218,18 @@ def make_propagator(
     check_positive("window_mm", window_mm, "mm")
     check_positive("focal_length_mm", focal_length_mm, "mm")
     pitch = window_mm / aperture_npix
+    if method == "transfer":
+        return _transfer_propagator(
+            window_mm=window_mm,
+            focal_length_mm=focal_length_mm,
+            longest_wavelength_nm=max(
+                fft_wavelength_nm, shortest_wavelength_nm, longest_wavelength_nm or 0.0
+            ),
+            npix=npix,
+            pixel_scale_deg=pixel_scale_deg,
+            aperture_npix=aperture_npix,
+            propagation=propagation,
+        )
     if pixel_scale_deg is None:
         if method == "mft":
             raise ConfigError("method = 'mft' needs pixel_scale_deg")
@@ -210,11 +265,17 @@ def make_propagator(
                 f"aperture raster resolves; use aperture_npix >= {needed}, a longer "
                 "focal_length_mm, or propagation = 'fraunhofer'"
             )
+    core_npix = None
     if method == "mft":
         half_field = math.radians(float(output.half_field_deg))
+        band = math.degrees(0.5 / pitch * shortest_wavelength_nm * 1e-6)
+        if beyond_band and propagation == "fraunhofer" and float(output.half_field_deg) > band:
+            # The largest centred square inside the band, of the output's parity.
+            core_npix = 2 * int(band / float(output.pixel_scale_deg) * (1 + 1e-6)) + npix % 2
+            core_npix = max(core_npix - (core_npix - npix) % 2, 1)
         # A relative margin: a field exactly at the band edge (the FFT's own) is fine
         # and must not be refused for a float32 rounding error.
-        if half_field / (shortest_wavelength_nm * 1e-6) > 0.5 / pitch * (1 + 1e-6):
+        elif half_field / (shortest_wavelength_nm * 1e-6) > 0.5 / pitch * (1 + 1e-6):
             supported = math.degrees(0.5 / pitch * shortest_wavelength_nm * 1e-6)
             raise PhysicsRangeError(
                 f"the output field reaches {float(output.half_field_deg):.4g} deg but the "
@@ -226,4 +287,41 @@ def make_propagator(
     grid = ApertureGrid.from_width(aperture_npix, window_mm)
     if method == "fft":
         return cls(grid=grid, output=output, focal_length_mm=focal_length_mm, fft_npix=fft_npix)
+    if core_npix is not None:
+        return cls(
+            grid=grid, output=output, focal_length_mm=focal_length_mm, core_npix=core_npix
+        )
     return cls(grid=grid, output=output, focal_length_mm=focal_length_mm)
+
+
+def _transfer_propagator(
+    *,
+    window_mm: float,
+    focal_length_mm: float,
+    longest_wavelength_nm: float,
+    npix: int,
+    pixel_scale_deg: float | None,
+    aperture_npix: int,
+    propagation: str,
+) -> FresnelTransfer:
+    """The :class:`FresnelTransfer` of a sampling (its pixel scale is the grid's, not chosen)."""
+    if propagation != "fresnel":
+        raise ConfigError(
+            "method = 'transfer' is the Fresnel near field (propagation = 'fresnel'); the "
+            "far field takes 'fft', 'mft' or 'auto'"
+        )
+    grid = ApertureGrid.from_width(aperture_npix, window_mm)
+    native_deg = math.degrees(window_mm / aperture_npix / focal_length_mm)
+    if pixel_scale_deg is not None and abs(pixel_scale_deg - native_deg) > 1e-6 * native_deg:
+        raise ConfigError(
+            f"method = 'transfer' puts the PSF on the image plane at the aperture pitch, "
+            f"{native_deg:.6g} deg per pixel here (pitch / focal_length_mm); pixel_scale_deg = "
+            f"{pixel_scale_deg:g} differs: drop it, or change window_mm / aperture_npix"
+        )
+    # The transfer function is sampled for the longest wavelength it meets (its phase
+    # grows with lambda d).
+    fft_npix = near_field_fft_npix(grid, longest_wavelength_nm, focal_length_mm, npix)
+    output = AngularGrid(npix, native_deg)
+    return FresnelTransfer(
+        grid=grid, output=output, focal_length_mm=focal_length_mm, fft_npix=fft_npix
+    )

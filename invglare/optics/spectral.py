@@ -397,11 +397,40 @@ def scaled_copies(
     return jnp.swapaxes(total, -1, -2)
 
 
+#: How the scaled copies are weighted: each keeps the reference's energy (``"energy"``,
+#: the default), or the temporal-glare paper's plain look-up ``F_575(x 575 / lambda)``
+#: (``"paper"``), whose copy at ``lambda`` carries ``(lambda / 575)**2`` of it.
+COPY_WEIGHTINGS = ("energy", "paper")
+
+
+def copy_weights(
+    weights: Float[ArrayLike, "nwl c"], factors: Float[ArrayLike, " nwl"], weighting: str
+) -> Float[Array, "nwl c"]:
+    """Per-copy weights for :func:`scaled_copies` under a :data:`COPY_WEIGHTINGS` choice.
+
+    ``"energy"``: the weights as they are (every copy holds the reference's energy, as the
+    per-wavelength PSFs of a fixed aperture do). ``"paper"``: times ``factor**2``
+    (``factor = lambda / lambda_ref``), undoing :func:`scale_psf`'s energy-preserving
+    ``1 / factor**2``: the sum printed in Ritschel et al. (sec. 5), a plain look-up of the
+    reference PSF at ``x lambda_ref / lambda``, which weights the 770 nm end 1.79 times and
+    the 380 nm end 0.44 times (for lambda_ref = 575 nm) relative to the energy weighting.
+    """
+    if weighting not in COPY_WEIGHTINGS:
+        raise ConfigError(
+            f"copy_weighting = {weighting!r} is not one of {', '.join(COPY_WEIGHTINGS)}"
+        )
+    weights = jnp.asarray(weights)
+    if weighting == "energy":
+        return weights
+    return weights * (jnp.asarray(factors, weights.dtype) ** 2)[:, None]
+
+
 def scaled_copies_xyz(
     psf_ref: Float[ArrayLike, "*batch h w"],
     ref_wavelength_nm: ArrayLike,
     wavelengths_nm: Float[ArrayLike, " nwl"],
     weights: Float[ArrayLike, "nwl 3"],
+    weighting: str = "energy",
 ) -> Float[Array, "*batch h w 3"]:
     """XYZ PSF as a weighted sum of magnified copies of one monochromatic PSF.
 
@@ -410,7 +439,8 @@ def scaled_copies_xyz(
     the Fraunhofer approximation (an approximation for Fresnel PSFs). Unlike the
     paper's plain look-up, each copy keeps the reference's energy (the
     ``(lambda_ref / lambda)**2`` of :func:`scale_psf`), as the per-wavelength
-    PSFs of a fixed aperture do.
+    PSFs of a fixed aperture do; ``weighting="paper"`` gives the paper's sum
+    (:func:`copy_weights`).
 
     The copies are accumulated by `lax.scan`, so memory is one ``(3, h, w)``
     accumulator whatever the number of wavelengths (a `vmap` would hold all
@@ -446,6 +476,7 @@ def scaled_copies_xyz(
             f"{wavelengths.shape}, got {weights.shape}"
         )
     factors = wavelengths / jnp.asarray(ref_wavelength_nm, dtype=dtype)
+    weights = copy_weights(weights, factors, weighting)
     return jnp.moveaxis(scaled_copies(psf_ref, factors, weights), 0, -1)
 
 
@@ -492,6 +523,7 @@ class Spectrum(eqx.Module):
     reference_wavelength_nm: float = eqx.field(static=True, default=DEFAULT_REF_WAVELENGTH_NM)
     colourspace: str = eqx.field(static=True, default="sRGB")
     illuminant: str = eqx.field(static=True, default="E")
+    copy_weighting: str = eqx.field(static=True, default="energy")
 
     @classmethod
     def build(
@@ -502,8 +534,16 @@ class Spectrum(eqx.Module):
         reference_wavelength_nm: float = DEFAULT_REF_WAVELENGTH_NM,
         illuminant: str = "E",
         colourspace: str = "sRGB",
+        copy_weighting: str = "energy",
     ) -> Spectrum:
-        """Validate the choices and build the XYZ weight table (colour-science)."""
+        """Validate the choices and build the XYZ weight table (colour-science).
+
+        `copy_weighting` (:data:`COPY_WEIGHTINGS`) applies to ``spectral = "scaled"``.
+        """
+        if copy_weighting not in COPY_WEIGHTINGS:
+            raise ConfigError(
+                f"copy_weighting = {copy_weighting!r} is not one of {', '.join(COPY_WEIGHTINGS)}"
+            )
         if spectral not in SPECTRAL_METHODS:
             raise ConfigError(
                 f"spectral = {spectral!r} is not one of {', '.join(SPECTRAL_METHODS)}"
@@ -518,6 +558,7 @@ class Spectrum(eqx.Module):
             reference_wavelength_nm=float(reference_wavelength_nm),
             colourspace=colourspace,
             illuminant=illuminant,
+            copy_weighting=copy_weighting,
         )
 
     @property
@@ -542,7 +583,11 @@ class Spectrum(eqx.Module):
         if self.spectral == "scaled":
             reference = monochrome(jnp.asarray(self.reference_wavelength_nm))
             xyz = scaled_copies_xyz(
-                reference, self.reference_wavelength_nm, self.wavelengths_nm, self.weights_xyz
+                reference,
+                self.reference_wavelength_nm,
+                self.wavelengths_nm,
+                self.weights_xyz,
+                self.copy_weighting,
             )
         else:
             xyz = psf_to_xyz(jax.vmap(monochrome)(self.wavelengths_nm), self.weights_xyz)

@@ -288,12 +288,15 @@ CASES: tuple[Case, ...] = (
     Case(
         "temporal_frame",
         "temporal eye (Ritschel): frame 0 of key 3 adapted to 10 cd/m^2, lids, lashes, lens "
-        "particles and gratings, Fresnel at 575 nm, 8 scaled copies 400-700 nm",
+        "particles and gratings, E at an effective 1200 mm (575 nm), unit energy, 8 scaled "
+        "copies 400-700 nm",
         {
             "model": {
                 "kind": "temporal",
                 "aperture_npix": 128,
-                "focal_length_mm": 1200.0,
+                "fresnel": "effective",
+                "fresnel_distance_mm": 1200.0,
+                "brightness": "unit",
                 "seed": 3,
                 "field_luminance_cd_m2": 10.0,
                 "eye": {
@@ -309,11 +312,13 @@ CASES: tuple[Case, ...] = (
                             "radius_mean_mm": 0.04,
                         },
                     ],
+                    # Resolved by the 64 um raster (80 um lines aliased on it, and are
+                    # refused now); the first order, 0.07-0.13 deg, inside the field.
                     "gratings": {
                         "count": 12.0,
                         "n_max": 12,
-                        "spacing_mm": 0.08,
-                        "line_thickness_mm": 0.03,
+                        "spacing_mm": 0.32,
+                        "line_thickness_mm": 0.08,
                     },
                 },
             },
@@ -321,6 +326,66 @@ CASES: tuple[Case, ...] = (
             "spectrum": {"wavelengths_nm": "400:700:8"},
         },
         tolerance=FRESNEL_TOLERANCE,
+    ),
+    Case(
+        "temporal_retina",
+        "temporal eye with the paper's defaults: eq. 3's E at the eye's 17 mm (alias-free, "
+        "the pupil's Fresnel shadow on the retina), brightness = K (transmitted power), "
+        "lids and lens particles, 4 scaled copies 450-650 nm",
+        {
+            "model": {
+                "kind": "temporal",
+                "aperture_npix": 64,
+                "seed": 3,
+                "field_luminance_cd_m2": 1.0,
+                "eye": {
+                    "seed": 5,
+                    "pupil": {"diameter_mm": 5.0},
+                    "lids": _LIDS,
+                    "particles": [
+                        {
+                            "region": "lens_nucleus",
+                            "count": 30.0,
+                            "n_max": 30,
+                            "radius_mean_mm": 0.1,
+                        },
+                    ],
+                },
+            },
+            "output": {"npix": 128},
+            "spectrum": {"wavelengths_nm": "450:650:4"},
+        },
+        tolerance=FRESNEL_TOLERANCE,
+    ),
+    Case(
+        "eye_wide_angle",
+        "Kakimoto eye with cornea cells on a +-0.26 deg field, beyond the 32-px raster's "
+        "+-0.16 deg band: the raster inside it, the cells' Babinet scatter (ensemble) beyond, "
+        "550 nm",
+        {
+            "model": {
+                "kind": "eye",
+                "focal_length_mm": 17.0,
+                "obstacle_distance_mm": 8.0,
+                "aperture_npix": 32,
+                "window_mm": 3.2,
+                "eye": {
+                    "seed": 2,
+                    "pupil": {"diameter_mm": 3.0},
+                    "particles": [
+                        {
+                            "region": "cornea",
+                            "count": 60.0,
+                            "n_max": 60,
+                            "radius_mean_mm": 0.0075,
+                            "region_radius_mm": 2.0,
+                        }
+                    ],
+                },
+            },
+            "output": {"npix": 128, "pixel_scale_deg": 0.004},
+            "spectrum": {"wavelengths_nm": 550.0},
+        },
     ),
 )
 

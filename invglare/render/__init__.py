@@ -5,10 +5,12 @@ A glare render is: find the bright pixels of a linear HDR image (`bright_pixels`
 whole frame, or `billboard_glare` stamps at a list of pixels, optionally with a
 PSF per position: `position_glare` gives each light of a frame the Kakimoto PSF of its
 own direction), add the result to the image and tone-map it for display
-(`tonemap` and `TONEMAPS`). `scenes` provides small procedural HDR scenes in
-cd/m^2 so that all of this runs with nothing downloaded. `temporal_frames` renders the
-temporal glare model's animations (`render_frame`, `render_sequence`: a per-frame PSF
-convolved with an HDR frame and tone-mapped, one `lax.scan` per sequence).
+(`tonemap` and `TONEMAPS`); or, as Kakimoto et al. composite, tone-map each glare into a
+billboard and blend it onto the low-dynamic-range picture (`composite`). `scenes` provides
+small procedural HDR scenes in cd/m^2 so that all of this runs with nothing downloaded.
+`temporal_frames` renders the temporal glare model's animations (`render_frame`,
+`render_sequence`: a per-frame PSF convolved with an HDR frame and tone-mapped, one
+`lax.scan` per sequence).
 """
 
 from invglare.render.billboard import add_billboards as add_billboards
@@ -20,6 +22,8 @@ from invglare.render.bright import bright_pixel_list as bright_pixel_list
 from invglare.render.bright import bright_pixels as bright_pixels
 from invglare.render.bright import light_angles_deg as light_angles_deg
 from invglare.render.bright import luminance as luminance
+from invglare.render.composite import kakimoto_billboard_texture as kakimoto_billboard_texture
+from invglare.render.composite import kakimoto_composite as kakimoto_composite
 from invglare.render.convolve import check_compatible_scales as check_compatible_scales
 from invglare.render.convolve import convolve_psf as convolve_psf
 from invglare.render.convolve import fft_size as fft_size

@@ -209,7 +209,11 @@ def light_angles_deg(
 
     The centre pixel ``(H // 2, W // 2)`` is the optical axis; x grows with the
     column and y with the row, as the coordinates of `invglare._core.grids`
-    (so a model's PSF for the light at that angle matches the frame's orientation).
+    (so a model's PSF for the light at that angle matches the frame's orientation):
+    in the frame as an image file shows it (row 0 at the top) +y points down. The
+    offsets are pixel offsets times the scale, the small-angle reading of the frame;
+    a veiling model, whose screen is its sensor, turns them into directions with
+    :func:`~invglare.models.veiling_ghosts.direction_of_screen_deg`.
 
     **Example:**
 

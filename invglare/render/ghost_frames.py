@@ -3,7 +3,10 @@
 Lens ghosts are not a shift-invariant PSF: as a light moves off the axis its ghosts
 move along the line through the axis, and they grow or fade. So a veiling-glare
 render is per light: the bright pixels of the frame (`bright_pixel_list`) are the
-lights, each at the angle of its pixel from the image centre (the optical axis), and
+lights, each in the direction whose direct image is its pixel (the frame is the
+model's screen, the sensor in units of the EFL: a pixel at ``s`` deg from the centre,
+the optical axis, is the light at ``atan(s)``,
+:func:`~invglare.models.veiling_ghosts.direction_of_screen_deg`), and
 each adds the veiling image of :class:`~invglare.models.veiling.VeilingGlare` for its
 own direction, scaled by its value. The light that went into ghosts leaves the
 light's own pixel (its value is scaled by the model's direct fraction), so the
@@ -20,6 +23,7 @@ from jaxtyping import Array, ArrayLike, Float
 from invglare.errors import InputDataError
 from invglare.models.base import check_light_angle
 from invglare.models.veiling import VeilingGlare
+from invglare.models.veiling_ghosts import direction_of_screen_deg
 from invglare.render.bright import BrightPixels, light_angles_deg
 
 
@@ -61,7 +65,7 @@ def render_ghosts(
     colour = image.ndim == 3
     values = bright.values if colour else bright.values[:, None]
     values = jnp.where(bright.valid[:, None], values, 0.0)
-    angles = light_angles_deg(bright, shape, pixel_scale_deg)
+    angles = direction_of_screen_deg(light_angles_deg(bright, shape, pixel_scale_deg))
     check_light_angle(angles, batched=True)
     images = model.batch(angles, batch_size=batch_size)  # (K, H, W)
     ghosts = jnp.einsum("khw,kc->hwc", images, values.astype(images.dtype))

@@ -30,7 +30,12 @@ from invglare._core.checks import as_float
 from invglare._core.xla import materialise
 from invglare.dynamics import DynamicsState
 from invglare.errors import ConfigError, InputDataError
-from invglare.models.temporal import TemporalGlare, check_n_frames, frame_luminance_cd_m2
+from invglare.models.temporal import (
+    TemporalGlare,
+    check_n_frames,
+    frame_luminance_cd_m2,
+    head_motion,
+)
 from invglare.render.convolve import (
     centre_phase,
     crop_psf_reach,
@@ -200,6 +205,7 @@ def render_sequence(
     image_scale_deg: float | None = None,
     output: str = "display",
     wrap: bool = False,
+    head_acceleration_rad_s2: Float[ArrayLike, "*n 3"] | None = None,
 ) -> tuple[DynamicsState, Float[Array, "n H W *c"]]:
     """`n_frames` frames of a still HDR image seen through the moving eye (one scan).
 
@@ -210,6 +216,8 @@ def render_sequence(
     - `state`: the first frame's state (default: at rest, adapted to the image); pass
       the returned state to continue a sequence in chunks.
     - `output`: ``"display"`` (tone-mapped, [0, 1]) or ``"linear"`` (HDR).
+    - `head_acceleration_rad_s2`: the observer's angular acceleration, ``(3,)`` or
+      ``(n_frames, 3)`` rad/s^2, which swings the vitreous (default: a still head).
 
     **Returns:** the state after the last frame, and the frames.
 
@@ -228,10 +236,11 @@ def render_sequence(
     spectrum, glare = frame_convolver(model, image, image_scale_deg, wrap)
     state = model.init_state(lum) if state is None else state
     constants = model.sequence_constants()
+    head = head_motion(head_acceleration_rad_s2, n_frames, lum.dtype)
 
-    def body(s, _):
+    def body(s, frame_head):
         linear = glare(spectrum, model.psf_cf(constants, s))
         frame = display(model, linear) if output == "display" else linear
-        return model.advance(s, lum), frame
+        return model.advance(s, lum, frame_head), frame
 
-    return jax.lax.scan(body, state, None, length=n_frames)
+    return jax.lax.scan(body, state, head)

@@ -173,7 +173,7 @@ def no_psf(monkeypatch):
         (["--for", "blender", "--npix", "64"], "kernel size must be odd, got 64"),
         (["--for", "unreal", "--viewport", "1920by1080"], "--viewport must be WIDTHxHEIGHT"),
         (["--for", "unreal", "--fov-deg", "40"], "--fov-deg needs --viewport"),
-        (["--for", "blender", "--out", "k.png"], "--out must be an OpenEXR file"),
+        (["--for", "blender", "--out", "k.png"], "--out 'k.png' has extension '.png'"),
     ],
 )
 def test_bad_requests_are_one_line_errors(setup, no_psf, args, message):

@@ -139,6 +139,15 @@ def test_accommodation_power_spectrum_has_its_two_bands():
     # The low-frequency power follows the pupil size (same noise: exactly its square).
     small = np.asarray(acc.low_d(t, KEY, 3.0))
     np.testing.assert_allclose(np.mean(low**2) / np.mean(small**2), 4.0, rtol=1e-5)
+    # Issue 27 (5): the high component is one narrow peak inside 1.3-2.1 Hz (the 0.1 Hz
+    # about 1.7 Hz holds what the whole band holds), not spread across the band.
+    assert band_fraction(high, rate, 1.65, 1.75) > 0.95
+    moved = Accommodation(high_peak_hz=1.4, high_width_hz=0.1)
+    assert band_fraction(np.asarray(moved.high_d(t, KEY)), rate, 1.35, 1.45) > 0.95
+    with pytest.raises(PhysicsRangeError, match="high_peak_hz"):
+        Accommodation(high_peak_hz=2.5)
+    with pytest.raises(PhysicsRangeError, match="band"):
+        Accommodation(high_peak_hz=2.05, high_width_hz=0.3)
 
 
 # ------------------------------------------------------------------------------ lens
@@ -227,6 +236,35 @@ def test_vitreous_angular_velocity_decays_with_the_set_damping_after_an_impulse(
     for n in range(600):
         s = springy.step(s, jax.random.fold_in(KEY, n), dt)
     assert float(jnp.max(jnp.abs(s.angle_rad))) < 1e-3
+
+
+def test_vitreous_is_overdamped_by_default_and_swung_by_the_observers_motion():
+    """Issue 27 (5): Zimmerman's overdamped gel (c^2 > 4 k) and the paper's observer motion:
+    a head turning with acceleration +a leaves the gel turning the other way, which then
+    creeps back to rest without overshooting."""
+    body = VitreousBody(saccade_rate_hz=0.0)
+    c, k = float(body.damping_per_s), float(body.stiffness_per_s2)
+    assert c * c > 4 * k
+    dt = 1.0 / 60.0
+    step = jax.jit(lambda s, n, a: body.step(s, jax.random.fold_in(KEY, n), dt, a))
+    state = body.init_state()
+    angles = []
+    for n in range(480):  # the head turns for 0.1 s, then holds still
+        head = jnp.array([0.0, 10.0, 0.0]) if n < 6 else jnp.zeros(3)
+        state = step(state, n, head)
+        angles.append(float(state.angle_rad[1]))
+    angles = np.array(angles)
+    assert angles.min() < -1e-3  # the gel lags behind the turning eye
+    assert np.all(angles <= 1e-9)  # and comes back without swinging through rest
+    assert abs(angles[-1]) < 0.1 * abs(angles.min())
+    # Through the whole eye: a still head (None) is the zero input.
+    dyn = EyeDynamics(vitreous=VitreousBody(saccade_rate_hz=0.0))
+    s0 = dyn.init_state(10.0)
+    still = dyn.step(s0, 10.0, dt, KEY, 4.0)
+    same = dyn.step(s0, 10.0, dt, KEY, 4.0, jnp.zeros(3))
+    np.testing.assert_array_equal(still.vitreous.velocity_rad_s, same.vitreous.velocity_rad_s)
+    turned = dyn.step(s0, 10.0, dt, KEY, 4.0, jnp.array([5.0, 0.0, 0.0]))
+    assert float(turned.vitreous.velocity_rad_s[0]) == pytest.approx(-5.0 * dt)
 
 
 def test_vitreous_saccades_rotate_the_body_and_particles_keep_their_distances():

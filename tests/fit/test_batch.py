@@ -27,7 +27,7 @@ from invglare.fit.batch import (
     check_address,
     dask_client,
     finished,
-    remove_stale_temporaries,
+    recover_unfinished,
 )
 from invglare.fit.batch_figures import population_figures
 from invglare.fit.batch_table import collect_rows, recovery, short_names, to_csv, to_markdown
@@ -255,8 +255,9 @@ def test_finished_needs_a_complete_fit_result_and_stale_temporaries_go(tmp_path)
     stale = tmp_path / ".done.k2j3h4.tmp"
     stale.mkdir()
     (tmp_path / ".other.abc.tmp").mkdir()
-    assert remove_stale_temporaries(tmp_path, ["done"]) == 1
+    recover_unfinished([tmp_path / "done"])
     assert not stale.exists() and (tmp_path / ".other.abc.tmp").exists()
+    assert finished(tmp_path / "done").values[SIGMA] == 2.0
 
 
 # --------------------------------------------------------------------------------------

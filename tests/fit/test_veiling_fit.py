@@ -95,10 +95,12 @@ def test_ghost_section_errors_follow_a_known_shift():
     same, data = ghost_section(truth, truth)
     assert data["max_position_error_px"] == 0 and data["max_intensity_rel_error"] == 0
     assert len(same) == 2 + 2 + 2  # the summary, a blank, the table's head, two ghosts
-    # The light 0.2 deg further right moves each ghost by ratio * 0.2 deg = ratio * 0.5 px.
+    # The light 0.2 deg further right moves its image on the screen by
+    # deg(tan 1.2 deg) - deg(tan 1 deg) = 0.20009 deg (0.50023 px), each ghost ratio times that.
     moved = _model((1.2, 0.0))
     _, data = ghost_section(moved, truth)
-    np.testing.assert_allclose(data["position_error_px"], [0.25, 0.4], rtol=1e-5)
+    step_px = np.degrees(np.tan(np.radians(1.2)) - np.tan(np.radians(1.0))) / 0.4
+    np.testing.assert_allclose(data["position_error_px"], [0.5 * step_px, 0.8 * step_px], rtol=1e-5)
     brighter = eqx.tree_at(lambda m: m.ghosts.intensity_per_sr, truth, jnp.array([0.021, 0.01]))
     _, data = ghost_section(brighter, truth)
     np.testing.assert_allclose(data["intensity_rel_error"], [0.05, 0.0], atol=1e-6)

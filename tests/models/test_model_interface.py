@@ -151,6 +151,9 @@ KINDS = {
                 "kind": "veiling",
                 "profile": "hat",
                 "n_harmonics": 16,
+                # The raw series: the positivity floor's kink, where a ringing pixel sits
+                # within a difference step of 0, stops central differences converging.
+                "positivity": "none",
                 "ghosts": {
                     "position_deg": [[0.0, 0.0], [0.5, 0.0]],
                     "radius_deg": [1.5, 3.0],
@@ -190,8 +193,10 @@ KINDS = {
         leaf_index=None,
         x0=5.0,
         eps=1e-3,
-        # The FFT's native scale at the 575 nm reference (the module's "Sampling").
-        pixel_scale_deg=lambda c: fft_native_scale_deg(c, 575.0),
+        # Eq. 3 at the eye's distance: the retina at the aperture pitch, pitch / d rad.
+        pixel_scale_deg=lambda c: math.degrees(
+            c["model"]["window_mm"] / c["model"]["aperture_npix"] / c["model"]["focal_length_mm"]
+        ),
         wavelengths_nm=tuple(float(w) for w in parse_wavelengths("380:770:8")),
         shift_invariant=True,
         centre="light",

@@ -17,6 +17,7 @@ from invglare.aperture.eye.inclusions import Gratings, Particles
 from invglare.aperture.eye.lashes import Eyelashes
 from invglare.aperture.eye.pool import stamp_bound
 from invglare.aperture.eye.pupil import Eyelids, Pupil
+from invglare.aperture.shapes.primitives import ImageMask, shifted_image_transmission
 from invglare.aperture.shapes.stamps import window_half_px
 from invglare.errors import ConfigError, PhysicsRangeError
 
@@ -56,6 +57,16 @@ class EyeAperture(eqx.Module):
       ``"lower"``) or None; lashes need `lids` (they are rooted on the margins).
     - `particles`: a sequence of :class:`Particles` populations (stored as a tuple).
     - `gratings`: :class:`Gratings` or None.
+    - `obstacle_image`: an :class:`~invglare.aperture.ImageMask` in the obstacle plane, or
+      None: any picture of an obstacle (a photo of lashes, a drawing), Kakimoto et al.'s
+      ``t_o``. It multiplies the lids and lashes by ``1 - coverage``: with ``role =
+      "block"`` white passes light and black stops it, with ``role = "open"`` the other
+      way round; outside the image the plane is clear. It slides over the pupil with the
+      light like the lids (position masking), and its placement (`center_mm`,
+      `rotation_deg`, `width_mm`) is differentiable.
+    - `pupil_image`: an :class:`~invglare.aperture.ImageMask` (``role = "open"``: white
+      passes) multiplying the pupil opening, or None: a pupil of any shape (set the
+      procedural pupil at least as large as the image).
 
     Parameters are addressed by path for fitting, e.g.
     ``eqx.tree_at(lambda e: e.upper_lashes.count, eye, 60.5)``.
@@ -75,6 +86,8 @@ class EyeAperture(eqx.Module):
     lower_lashes: Eyelashes | None = None
     particles: tuple = eqx.field(converter=_as_particle_tuple, default=())
     gratings: Gratings | None = None
+    obstacle_image: ImageMask | None = None
+    pupil_image: ImageMask | None = None
 
     def __check_init__(self):
         def need(name, value, cls, optional=True):
@@ -90,6 +103,8 @@ class EyeAperture(eqx.Module):
         need("upper_lashes", self.upper_lashes, Eyelashes)
         need("lower_lashes", self.lower_lashes, Eyelashes)
         need("gratings", self.gratings, Gratings)
+        need("obstacle_image", self.obstacle_image, ImageMask)
+        need("pupil_image", self.pupil_image, ImageMask)
         for i, p in enumerate(self.particles):
             need(f"particles[{i}]", p, Particles, optional=False)
         for name, lashes, lid in (
@@ -117,14 +132,21 @@ class EyeAperture(eqx.Module):
     def obstacle_transmission(
         self, grid: ApertureGrid, shift_mm: Float[ArrayLike, " 2"] = (0.0, 0.0)
     ) -> Float[Array, "n n"]:
-        """``t_o``: lids times lashes, translated by `shift_mm` = (x, y) mm.
+        """``t_o``: lids times lashes (times the obstacle image), translated by `shift_mm`.
 
         Translating the obstacle image by ``(d_o / f) * x_f`` relative to the pupil is
         the position-dependent masking of Kakimoto eq. 3 (the light from direction
         ``x_f / f`` sees the lashes shifted); 0 gives the fixed mask of eq. 5.
-        Differentiable in `shift_mm` and vmappable over it. Without lids it is 1.
+        Differentiable in `shift_mm` and vmappable over it. Without lids and image it is 1.
         """
         return _obstacle_image(self._resolve_windows(grid), grid, as_float(shift_mm))
+
+    def opening(self, grid: ApertureGrid) -> Float[Array, "n n"]:
+        """The pupil's opening: the pupil (times the pupil image), without what lies inside."""
+        opening = self.pupil.coverage(grid)
+        if self.pupil_image is not None:
+            opening = opening * self.pupil_image.coverage(grid)
+        return opening
 
     def transmission(self, grid: ApertureGrid) -> Float[Array, "n n"]:
         """``P * t_o`` with the obstacle unshifted (Kakimoto eq. 5's fixed mask)."""
@@ -219,7 +241,7 @@ class EyeAperture(eqx.Module):
 
 @eqx.filter_jit
 def _pupil_image(eye: EyeAperture, grid: ApertureGrid) -> Array:
-    opening = eye.pupil.coverage(grid)
+    opening = eye.opening(grid)
     if not eye.particles and eye.gratings is None:
         return opening
     log_t = jnp.zeros_like(opening)
@@ -232,10 +254,13 @@ def _pupil_image(eye: EyeAperture, grid: ApertureGrid) -> Array:
 
 @eqx.filter_jit
 def _obstacle_image(eye: EyeAperture, grid: ApertureGrid, shift_mm: Array) -> Array:
+    dtype = jnp.result_type(grid.pitch_mm, float)
+    out = jnp.ones((grid.npix, grid.npix), dtype=dtype)
+    if eye.obstacle_image is not None:
+        out = out * shifted_image_transmission(eye.obstacle_image, grid, shift_mm)
     if eye.lids is None:
-        dtype = jnp.result_type(grid.pitch_mm, float)
-        return jnp.ones((grid.npix, grid.npix), dtype=dtype)
-    out = eye.lids.transmission(grid, shift_mm)
+        return out
+    out = out * eye.lids.transmission(grid, shift_mm)
     if eye.upper_lashes is None and eye.lower_lashes is None:
         return out
     log_t = jnp.zeros_like(out)

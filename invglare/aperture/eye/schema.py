@@ -14,6 +14,7 @@ import numpy as np
 
 from invglare.aperture._plain import plain
 from invglare.aperture.eye.aperture import EyeAperture
+from invglare.aperture.shapes.schema import shape_to_config
 from invglare.errors import ConfigError
 
 # The keys of each component's table, in constructor order, with the kind of their values:
@@ -72,8 +73,23 @@ GRATING_KEYS = {
     "lines_per_grating": "int",
     "key_data": "key",
 }
-#: Keys of an eye table (sub-tables, a list of particle tables, and the seed).
-EYE_KEYS = ("pupil", "lids", "lashes_upper", "lashes_lower", "particles", "gratings", "seed")
+#: Keys of an eye table (sub-tables, a list of particle tables, and the seed). The image
+#: tables take the keys of an image shape (``path``, ``width_mm``, ``center_mm``,
+#: ``rotation_deg``, ``role``; :mod:`invglare.aperture.shapes.schema`) without ``kind``.
+EYE_KEYS = (
+    "pupil",
+    "lids",
+    "lashes_upper",
+    "lashes_lower",
+    "particles",
+    "gratings",
+    "obstacle_image",
+    "pupil_image",
+    "seed",
+)
+#: The role an eye's image has when its table gives none: an obstacle image shows the
+#: plane's transmission (white passes), a pupil image the opening (white passes).
+IMAGE_DEFAULT_ROLES = {"obstacle_image": "block", "pupil_image": "open"}
 
 #: ``fold_in`` tags deriving each component's key from the eye's seed (the i-th particle
 #: population's is ``SEED_TAGS["particles"] + i``).
@@ -118,6 +134,10 @@ def eye_to_config(eye: EyeAperture) -> dict[str, Any]:
         table["lashes_upper"] = _component_table(eye.upper_lashes, LASH_KEYS)
     if eye.lower_lashes is not None:
         table["lashes_lower"] = _component_table(eye.lower_lashes, LASH_KEYS)
+    for name in IMAGE_DEFAULT_ROLES:
+        image = getattr(eye, name)
+        if image is not None:
+            table[name] = {k: v for k, v in shape_to_config(image).items() if k != "kind"}
     if eye.particles:
         table["particles"] = [_component_table(p, PARTICLE_KEYS) for p in eye.particles]
     if eye.gratings is not None:

@@ -82,10 +82,13 @@ from invglare.fit.sample.batching import BatchedLogProb, tune_batch_size
 from invglare.fit.sample.chain import (
     CHAIN_GROUP,
     FORMAT,
+    RUNNING,
     ChainBackend,
     chain_meta,
+    close_killed_runs,
     load_chain,
     read_meta,
+    repair_chain,
     stored_iteration,
     write_meta,
 )
@@ -228,10 +231,9 @@ def sample(
 
     if resume:
         # The last stored state, with its log-probabilities and random state: the run
-        # continues exactly where it stopped.
-        initial = emcee.backends.HDFBackend(
-            str(path), CHAIN_GROUP, read_only=True
-        ).get_last_sample()
+        # continues exactly where it stopped (the committed step, whatever a kill left).
+        repair_chain(path)
+        initial = ChainBackend(str(path), CHAIN_GROUP, read_only=True).get_last_sample()
         tune_walkers = initial.coords
     else:
         initial = initial_walkers(
@@ -273,7 +275,16 @@ def sample(
         "batch_timing_s_per_walker": {str(k): v for k, v in table.items()},
         "seed": int(seed),
         "started": time.strftime("%Y-%m-%dT%H:%M:%S"),
+        "stopped": RUNNING,
+        "pid": os.getpid(),
     }
+    # The record is there before the first step: a killed run leaves it "running", and the
+    # next run closes it as killed at the step the counter holds.
+    meta = read_meta(path) or meta
+    close_killed_runs(meta, run_info["start_step"])
+    meta.setdefault("runs", []).append(run_info)
+    with deferred_signals():
+        write_meta(path, meta)
     bar = None
     if progress is True:
         from tqdm.auto import tqdm
@@ -323,7 +334,10 @@ def sample(
         if bar is not None:
             bar.close()
         elapsed = time.perf_counter() - t_start
-        run_info["n_steps"] = int(done_steps)
+        # From the counter: the steps this run committed, whatever interrupted it.
+        end_step = stored_iteration(path)
+        run_info["end_step"] = int(end_step)
+        run_info["n_steps"] = int(end_step - run_info["start_step"])
         run_info["stopped"] = reason
         run_info["n_nan"] = int(f.n_nan)
         run_info["timing"] = {
@@ -333,10 +347,15 @@ def sample(
             "setup_s": setup_s,
             "batch_size": int(batch_size),
         }
-        # The run record is written even on an interrupt, so the file says what happened.
+        # The run record is completed even on an interrupt, so the file says what happened.
         meta = read_meta(path) or meta
-        meta.setdefault("runs", []).append(run_info)
-        write_meta(path, meta)
+        runs = meta.setdefault("runs", [])
+        if runs and runs[-1].get("pid") == run_info["pid"] and runs[-1]["stopped"] == RUNNING:
+            runs[-1] = run_info
+        else:
+            runs.append(run_info)
+        with deferred_signals():
+            write_meta(path, meta)
     result = load_chain(path, space, tau_factor=tau_factor)
     result.timing = dict(run_info["timing"])
     return result
