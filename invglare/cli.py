@@ -419,6 +419,78 @@ def fit(
     run_fit(config, out_dir, n_starts, max_steps, progress)
 
 
+@app.command("fit-batch")
+@_reports_user_errors
+def fit_batch(
+    config: Annotated[Path, typer.Argument(help="Fit config (TOML), e.g. fits/eye_daylight.toml.")],
+    photos: Annotated[
+        list[str],
+        typer.Argument(
+            help="Photos: files, folders, quoted globs ('data/*.exr') or a .csv photo table "
+            "(columns photo, name, pixel_scale_deg, saturation, channel, linear, truth)."
+        ),
+    ],
+    out_dir: Annotated[
+        Path | None,
+        typer.Option(
+            help="The fit's report folder (default: fit.out_dir or reports/NAME); the batch "
+            "goes to its batch/ subfolder."
+        ),
+    ] = None,
+    scheduler: Annotated[
+        str | None,
+        typer.Option(
+            help="Address of a running Dask scheduler (tcp://HOST:PORT); default: a local "
+            "cluster, closed at the end."
+        ),
+    ] = None,
+    workers: Annotated[
+        int | None, typer.Option(help="Worker processes of the local cluster (default: cores).")
+    ] = None,
+    vmap: Annotated[
+        int, typer.Option(help="Fit up to this many same-size photos in one vmapped solve.")
+    ] = 1,
+    n_starts: Annotated[int | None, typer.Option(help="Override solver.n_starts.")] = None,
+    max_steps: Annotated[int | None, typer.Option(help="Override solver.max_steps.")] = None,
+    resume: Annotated[
+        bool, typer.Option(help="Skip photos whose report exists (--no-resume refits them).")
+    ] = True,
+    cache_dir: Annotated[
+        Path | None,
+        typer.Option(
+            help="JAX's persistent compilation cache on the workers (default "
+            "~/.cache/invglare/jax)."
+        ),
+    ] = None,
+    progress: Annotated[bool, typer.Option(help="Show a progress bar over photos.")] = True,
+) -> None:
+    """Fit one config to many photos on Dask: reports/NAME/batch/PHOTO/ and a batch table.
+
+    Each photo is a task on a local cluster (one single-threaded worker process per
+    core) or on the cluster at --scheduler. A photo that fails is recorded with its
+    reason and the others go on; the exit status is 1 when any failed or did not
+    converge. A rerun skips the photos that have a report (an interrupted batch resumes).
+    """
+    from invglare.commands.fit_batch import run_fit_batch
+
+    summary = run_fit_batch(
+        config, photos, out_dir=out_dir, scheduler=scheduler, workers=workers, vmap=vmap,
+        n_starts=n_starts, max_steps=max_steps, resume=resume, progress=progress,
+        cache_dir=cache_dir,
+    )  # fmt: skip
+    failures = summary.failures
+    if failures:
+        for row in failures:
+            typer.echo(f"FAIL {row.name} ({row.status}): {row.reason}", err=True)
+        typer.echo(
+            f"invglare fit-batch: {len(failures)} of {len(summary.rows)} photo(s) failed or did "
+            f"not converge: {', '.join(r.name for r in failures)} "
+            f"(see {summary.folder / 'batch.md'})",
+            err=True,
+        )
+        raise typer.Exit(code=1)
+
+
 @app.command()
 @_reports_user_errors
 def sample(

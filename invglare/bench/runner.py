@@ -8,7 +8,9 @@ Two kinds of record go to ``reports/bench.json`` (``{"meta", "records", "fit"}``
 - **fit benchmarks** (:data:`invglare.bench.fit.FIT_CASES`), run once (not per size):
   invglare's fit against scipy's finite-difference least squares, side by side; and the
   **sampling benchmark** (:data:`invglare.bench.sample.SAMPLE_CASES`): emcee steps of a
-  posterior with batched and per-walker log-probabilities (kept with the fit records).
+  posterior with batched and per-walker log-probabilities (kept with the fit records); and
+  the **batch benchmark** (:data:`invglare.bench.batch.BATCH_CASES`): photos per minute
+  of ``invglare fit-batch`` on 1 and 2 Dask workers, a task's overhead, ``--vmap``.
 
 Speed is only ever reported as ratios of times measured in the same run, never asserted.
 """
@@ -29,6 +31,7 @@ from typing import Any
 from tqdm import tqdm
 
 from invglare._core.allocator import retain_freed_memory
+from invglare.bench.batch import BATCH_CASES
 from invglare.bench.cases import CASES as STATIC_CASES
 from invglare.bench.cases import Case
 from invglare.bench.fit import FIT_CASES
@@ -100,12 +103,13 @@ def select(patterns: list[str], skip: list[str] | None = None) -> tuple[list[Cas
     # The references every ratio is taken against run with any pipeline.
     always = [c for c in CASES if c.kind == "floor" or c.name in REFERENCES]
     cases = [c for c in CASES if c in pipelines or (pipelines and c in always)]
-    fits = [name for name in (*FIT_CASES, *SAMPLE_CASES) if wanted(name)]
+    fits = [name for name in (*FIT_CASES, *SAMPLE_CASES, *BATCH_CASES) if wanted(name)]
     # The peers (other packages, installed by the bench extra) run only when named.
     fits += [name for name in PEER_CASES if patterns and wanted(name)]
     if not pipelines and not fits:
         names = ", ".join(
-            [c.name for c in CASES] + list(FIT_CASES) + list(SAMPLE_CASES) + list(PEER_CASES)
+            [c.name for c in CASES]
+            + [*FIT_CASES, *SAMPLE_CASES, *BATCH_CASES, *PEER_CASES]
         )
         raise ConfigError(
             f"no benchmark case matches {patterns}"
@@ -246,6 +250,11 @@ def run_bench(
 
                 log.info("running the peers benchmark (dLux, hcipy, poppy; a minute or two)")
                 record = run_peer_benchmark(repeats, budget_s)
+            elif name in BATCH_CASES:
+                from invglare.bench.batch import run_batch_benchmark
+
+                log.info("running the batch benchmark %s on Dask (minutes)", name)
+                record = run_batch_benchmark()
             elif name in SAMPLE_CASES:
                 log.info("running the sampling benchmark %s (a few minutes)", name)
                 record = run_sample_benchmark()
@@ -343,6 +352,7 @@ def _num(x: float | None, fmt: str) -> str:
 
 def render_markdown(records: list[dict], meta: dict, fit_records: list[dict] | None = None) -> str:
     """bench.md: notes, a ratio overview (case x N), the full table, the fit section."""
+    from invglare.bench.batch import batch_markdown
     from invglare.bench.fit import fit_markdown
     from invglare.bench.peer_cases import peers_markdown
     from invglare.bench.sample import sample_markdown
@@ -417,7 +427,8 @@ def render_markdown(records: list[dict], meta: dict, fit_records: list[dict] | N
         lines += [f"- {failure}" for failure in failures]
     for record in fit_records or []:
         kind = record.get("kind")
-        markdown = {"sample": sample_markdown, "peers": peers_markdown}.get(kind, fit_markdown)
+        markdown = {"sample": sample_markdown, "peers": peers_markdown,
+                    "batch": batch_markdown}.get(kind, fit_markdown)  # fmt: skip
         section = markdown(record)
         lines += ["", *section]
     return "\n".join(lines) + "\n"

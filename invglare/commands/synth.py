@@ -24,6 +24,7 @@ invglare synth data_synthetic/eye_daylight.toml
 
 from __future__ import annotations
 
+import functools
 import json
 import logging
 import math
@@ -32,7 +33,7 @@ from typing import Any
 
 import numpy as np
 
-from invglare.config.synth import OBSERVATION_KEYS, SynthSpec, load_synth
+from invglare.config.synth import OBSERVATION_KEYS, SynthSpec, load_synth_specs
 from invglare.errors import ConfigError, InvglareError, prefixed
 
 log = logging.getLogger("invglare")
@@ -79,6 +80,19 @@ def build_truth_forward(spec: SynthSpec):
     return forward
 
 
+@functools.cache
+def _draw():
+    """The jitted draw of a noisy photo and its mean counts: made once, so that the members
+    of a population (one structure) share one compiled program."""
+    import equinox as eqx
+
+    def draw(fwd, key):
+        psf = fwd.model()
+        return fwd.obs.sample(key, psf), fwd.obs.expected(psf)
+
+    return eqx.filter_jit(draw)
+
+
 def synthesize(spec: SynthSpec) -> tuple[np.ndarray, dict[str, Any]]:
     """Draw the spec's photo. **Returns:** ``(photo as stored, truth dict)``; nothing is written."""
     import equinox as eqx
@@ -94,12 +108,7 @@ def synthesize(spec: SynthSpec) -> tuple[np.ndarray, dict[str, Any]]:
                 "monochrome model: set [spectrum] wavelengths_nm to one value"
             )
 
-        @eqx.filter_jit
-        def draw(fwd, key):
-            psf = fwd.model()
-            return fwd.obs.sample(key, psf), fwd.obs.expected(psf)
-
-        photo, expected = draw(forward, jax.random.key(spec.seed))
+        photo, expected = _draw()(forward, jax.random.key(spec.seed))
         photo = np.asarray(photo, dtype=np.float64)
         expected = np.asarray(expected, dtype=np.float64)
         variance = np.asarray(forward.obs.variance(expected))
@@ -151,6 +160,8 @@ def synthesize(spec: SynthSpec) -> tuple[np.ndarray, dict[str, Any]]:
             "peak_expected_counts": float(expected.max()),
         },
     }
+    if spec.drawn:
+        truth["drawn"] = dict(spec.drawn)
     return photo, truth
 
 
@@ -185,7 +196,8 @@ def run_synth(specs: list[Path], out_dir: Path | None = None) -> list[Path]:
 
     if out_dir is not None:
         output_folder(out_dir, "--out-dir")
-    parsed = [load_synth(p, out_dir) for p in specs]  # every spec is checked before any work
+    # Every spec is checked before any work; a population spec gives one per member.
+    parsed = [member for p in specs for member in load_synth_specs(p, out_dir)]
     for spec in parsed:
         where = "--out-dir" if out_dir is not None else f"the folder of {spec.path}"
         output_file(spec.out_exr, where, (".exr",))
@@ -206,4 +218,29 @@ def run_synth(specs: list[Path], out_dir: Path | None = None) -> list[Path]:
             truth_file.name,
         )
         written.append(exr)
+    write_population_tables([spec for spec in parsed if spec.drawn])
+    return written
+
+
+def write_population_tables(members: list[SynthSpec]) -> list[Path]:
+    """``population.csv`` in each population's folder: per member its photo, noise seed
+    and drawn values (the truth of each is in its ``NAME.truth.json``). **Returns:** paths."""
+    import csv
+    import io
+
+    from invglare.files.atomic import write_text_atomic
+
+    folders: dict[Path, list[SynthSpec]] = {}
+    for spec in members:
+        folders.setdefault(spec.out_dir, []).append(spec)
+    written = []
+    for folder, group in folders.items():
+        keys = list(dict.fromkeys(k for spec in group for k in spec.drawn))
+        buffer = io.StringIO()
+        out = csv.writer(buffer, lineterminator="\n")
+        out.writerow(["photo", "noise_seed", *keys])
+        for spec in group:
+            out.writerow([spec.out_exr.name, spec.seed, *(spec.drawn.get(k, "") for k in keys)])
+        written.append(write_text_atomic(folder / "population.csv", buffer.getvalue()))
+        log.info("wrote %s (%d members)", folder / "population.csv", len(group))
     return written

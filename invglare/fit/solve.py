@@ -60,6 +60,9 @@ from invglare.fit.result import FitResult
 from invglare.fit.views import PixelView, ResidualFn, make_residual_fn
 
 SOLVERS = ("lm", "bfgs")
+#: Said in a result's message when the noise-normalised residuals are far larger than the
+#: noise (a reduced chi-square above 3): a local minimum, or a wrong model.
+POOR_FIT = "the model does not explain the photo"
 BATCH_MODES = ("vmap", "loop")
 
 # Status codes returned from inside the jitted solve (an optimistix RESULTS item can
@@ -304,10 +307,26 @@ def _batched(f, y, i, run, cfg):
     return jax.vmap(lambda yy, ii: _solve_one(f, yy, ii, run, cfg))(y, i)
 
 
+def _batched_photos(f, y, i, run, cfg):
+    # `f`, `y` and `run` carry a leading photo axis (arrays only); the start indices do not.
+    one = lambda ff, yy, rr: _batched(ff, yy, i, rr, cfg)  # noqa: E731
+    return eqx.filter_vmap(one, in_axes=(eqx.if_array(0), 0, 0))(f, y, run)
+
+
+def _single_photos(f, y, i, run, cfg):
+    one = lambda ff, yy, rr: _solve_one(ff, yy, i, rr, cfg)  # noqa: E731
+    return eqx.filter_vmap(one, in_axes=(eqx.if_array(0), 0, 0))(f, y, run)
+
+
 # `fn` is an argument, not a closure, so its arrays (target, fixed leaves) are inputs
-# of the compiled program rather than baked-in constants.
-_batched_jit = eqx.filter_jit(_batched)
-_single_jit = eqx.filter_jit(_solve_one)
+# of the compiled program rather than baked-in constants. Keyed by batch mode; a "*"
+# marks the modes that solve several photos at once (:func:`fit_many`).
+_JITTED = {
+    "vmap": eqx.filter_jit(_batched),
+    "loop": eqx.filter_jit(_solve_one),
+    "vmap*": eqx.filter_jit(_batched_photos),
+    "loop*": eqx.filter_jit(_single_photos),
+}
 
 
 def _compile(fn, y0, starts, run, cfg, batch) -> tuple[Any, float]:
@@ -323,8 +342,7 @@ def _compile(fn, y0, starts, run, cfg, batch) -> tuple[Any, float]:
         _COMPILED.move_to_end(key)
         return hit, 0.0
     t0 = time.perf_counter()
-    jitted = _batched_jit if batch == "vmap" else _single_jit
-    compiled = jitted.lower(fn, y0, starts, run, cfg).compile()
+    compiled = _JITTED[batch].lower(fn, y0, starts, run, cfg).compile()
     elapsed = time.perf_counter() - t0
     if key is not None:
         _COMPILED[key] = compiled
@@ -368,6 +386,83 @@ def _run_stage(
     finally:
         _SINKS.pop(run_id, None)
     return values, losses, codes, steps, t_compile, t2 - t1
+
+
+def _run_stage_many(
+    fns: Sequence[ResidualFn],
+    y0s: Sequence[Float[Array, "n p"]],
+    cfg: _Config,
+    batch: str,
+    sinks: Sequence[Callable | None],
+) -> list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, float, float]]:
+    """:func:`_run_stage` for several photos in one compiled call (vmapped over photos).
+
+    Each photo's outputs come back as :func:`_run_stage` returns them; the compile and
+    solve seconds, shared, are split evenly between the photos.
+    """
+    k = len(fns)
+    fn = stack_modules(fns)
+    y0 = jnp.stack([jnp.asarray(y) for y in y0s])
+    starts = jnp.arange(y0.shape[1], dtype=jnp.int32)
+    run_ids = [next(_NEXT_RUN) for _ in range(k)]
+    runs = jnp.asarray(run_ids, dtype=jnp.int32)
+    for run_id, sink in zip(run_ids, sinks, strict=True):
+        if sink is not None:
+            _SINKS[run_id] = sink
+    try:
+        if batch == "vmap":
+            compiled, t_compile = _compile(fn, y0, starts, runs, cfg, "vmap*")
+            t1 = time.perf_counter()
+            out = jax.block_until_ready(compiled(fn, y0, starts, runs, cfg))
+            values, losses, codes, steps = (np.asarray(o) for o in out)
+        else:
+            compiled, t_compile = _compile(fn, y0[:, 0], starts[0], runs, cfg, "loop*")
+            t1 = time.perf_counter()
+            outs = [
+                jax.block_until_ready(compiled(fn, y0[:, j], starts[j], runs, cfg))
+                for j in range(y0.shape[1])
+            ]
+            values, losses, codes, steps = (
+                np.stack([np.asarray(o[m]) for o in outs], axis=1) for m in range(4)
+            )
+        jax.effects_barrier()
+        t2 = time.perf_counter()
+    finally:
+        for run_id in run_ids:
+            _SINKS.pop(run_id, None)
+    t_c, t_s = t_compile / k, (t2 - t1) / k
+    return [(values[j], losses[j], codes[j], steps[j], t_c, t_s) for j in range(k)]
+
+
+def stack_modules(modules: Sequence[Any]) -> Any:
+    """Pytrees of one structure as one, their arrays stacked along a new leading axis.
+
+    **Raises:** :class:`~invglare.errors.ConfigError` when their static parts (shapes,
+    static fields, non-array leaves) differ: such photos cannot share a compiled solve.
+    """
+    parts = [eqx.partition(m, eqx.is_array) for m in modules]
+    leaves0, def0 = jax.tree_util.tree_flatten(parts[0][1])
+    dyn_def = jax.tree_util.tree_structure(parts[0][0])
+    shapes0 = [(x.shape, x.dtype) for x in jax.tree_util.tree_leaves(parts[0][0])]
+    for i, (dyn, static) in enumerate(parts[1:], start=1):
+        leaves, treedef = jax.tree_util.tree_flatten(static)
+        shapes = [(x.shape, x.dtype) for x in jax.tree_util.tree_leaves(dyn)]
+        same = treedef == def0 and jax.tree_util.tree_structure(dyn) == dyn_def
+        same = same and shapes == shapes0 and _equal_leaves(leaves, leaves0)
+        if not same:
+            raise ConfigError(
+                f"photo {i} of a vmapped group differs in structure from photo 0 (size, "
+                "settings or static model fields): such photos are fitted apart"
+            )
+    stacked = jax.tree_util.tree_map(lambda *xs: jnp.stack(xs), *(p[0] for p in parts))
+    return eqx.combine(stacked, parts[0][1])
+
+
+def _equal_leaves(a: list, b: list) -> bool:
+    try:
+        return len(a) == len(b) and all(bool(x == y) for x, y in zip(a, b, strict=True))
+    except (TypeError, ValueError):
+        return False
 
 
 @eqx.filter_jit
@@ -521,145 +616,282 @@ def fit(
     print(res.summary())
     ```
     """
-    if solver not in SOLVERS:
-        raise ConfigError(f"solver {solver!r} is not one of {', '.join(SOLVERS)}")
-    if batch not in BATCH_MODES:
-        raise ConfigError(f"batch {batch!r} is not one of {', '.join(BATCH_MODES)}")
-    factors = tuple(coarse_to_fine)
-    if (
-        not factors
-        or any(not isinstance(f, int | np.integer) or f < 1 for f in factors)
-        or factors[-1] != 1
+    run = _FitRun(
+        space, forward_template, target, views, solver=solver, n_starts=n_starts, key=key,
+        starts=starts, max_steps=max_steps, rtol=rtol, atol=atol, coarse_to_fine=coarse_to_fine,
+        refine_top=refine_top, view_options=view_options, covariance_scale=covariance_scale,
+        truth=truth, batch=batch, progress=progress, record_history=record_history,
+        diagnostics=diagnostics,
+    )  # fmt: skip
+    for s in range(run.n_stages):
+        fn, y0s, sink = run.stage_inputs(s)
+        run.stage_done(s, *_run_stage(fn, y0s, run.cfg, batch, sink))
+    return run.result()
+
+
+def fit_many(
+    spaces: Sequence[ParameterSpace],
+    forward_templates: Sequence[Forward],
+    targets: Sequence[Float[ArrayLike, "h w"]],
+    views: Mapping[str, float] | None = None,
+    *,
+    starts: Sequence[Any],
+    truths: Sequence[Mapping[str, float] | None] | None = None,
+    progress: Sequence[Callable[[FitProgress], None] | None] | None = None,
+    batch: str = "vmap",
+    **settings: Any,
+) -> list[FitResult]:
+    """Fit several photos of one structure with one compiled solve per stage (`jax.vmap`).
+
+    The photos share their parameter paths and bounds, views and settings, and their
+    residual functions their static structure (photos of one size fitted with one config
+    do); each keeps its own starts, guesses and truth. Each result is what :func:`fit`
+    returns for that photo alone, up to the rounding of a batched computation: under
+    `vmap` every photo stops on its own criterion, while the batched loop runs until the
+    slowest photo is done.
+
+    **Arguments:** one entry per photo in `spaces`, `forward_templates`, `targets`,
+    `starts` (physical, ``(n, p)``; the same `n` for every photo), `truths` and
+    `progress`; `views`, `batch` and `settings` (the other keyword arguments of
+    :func:`fit`) are shared.
+
+    **Returns:** one :class:`~invglare.fit.FitResult` per photo, in order.
+
+    **Raises:** :class:`~invglare.errors.ConfigError` for lists of different lengths, no
+    photo, or photos whose residual functions differ in structure.
+
+    **Example:** ``fit_many([space] * 2, [fwd_a, fwd_b], [photo_a, photo_b], starts=[s, s])``.
+    """
+    k = len(targets)
+    truths = [None] * k if truths is None else list(truths)
+    progress = [None] * k if progress is None else list(progress)
+    lengths = {len(spaces), len(forward_templates), len(starts), len(truths), len(progress)}
+    if k == 0 or lengths != {k}:
+        raise ConfigError(
+            "fit_many needs one space, forward template, target, set of starts, truth and "
+            f"progress per photo, at least one; got {len(spaces)}, {len(forward_templates)}, "
+            f"{k}, {len(starts)}, {len(truths)}, {len(progress)}"
+        )
+    runs = [
+        _FitRun(sp, fw, tg, views, starts=st, n_starts=np.shape(st)[0], truth=tr, progress=pr,
+                batch=batch, **settings)
+        for sp, fw, tg, st, tr, pr in zip(spaces, forward_templates, targets, starts, truths,
+                                          progress, strict=True)
+    ]  # fmt: skip
+    for s in range(runs[0].n_stages):
+        inputs = [run.stage_inputs(s) for run in runs]
+        outs = _run_stage_many(
+            [i[0] for i in inputs], [i[1] for i in inputs], runs[0].cfg, batch,
+            [i[2] for i in inputs],
+        )  # fmt: skip
+        for run, out in zip(runs, outs, strict=True):
+            run.stage_done(s, *out)
+    return [run.result() for run in runs]
+
+
+class _FitRun:
+    """One photo's fit, stage by stage (coarse to fine): :func:`fit` and :func:`fit_many`
+    run the solves, one photo at a time or several in one call, and this keeps the books."""
+
+    def __init__(
+        self,
+        space: ParameterSpace,
+        forward_template: Forward,
+        target: Float[ArrayLike, "h w"],
+        views: Mapping[str, float] | None,
+        *,
+        solver: str = "lm",
+        n_starts: int = 3,
+        key: PRNGKeyArray | None = None,
+        starts: Any = None,
+        max_steps: int = 256,
+        rtol: float = 1e-6,
+        atol: float = 1e-8,
+        coarse_to_fine: Sequence[int] = (1,),
+        refine_top: int = 1,
+        view_options: Mapping[str, Mapping[str, Any]] | None = None,
+        covariance_scale: str | float = "chi2",
+        truth: Mapping[str, float] | None = None,
+        batch: str = "vmap",
+        progress: Callable[[FitProgress], None] | None = None,
+        record_history: bool = True,
+        diagnostics: bool = True,
     ):
-        raise ConfigError(
-            f"coarse_to_fine must be integers >= 1 ending with 1, e.g. (4, 1); got {factors!r}"
-        )
-    if int(refine_top) != refine_top or refine_top < 1:
-        raise ConfigError(f"refine_top must be an integer >= 1, got {refine_top!r}")
-    if int(max_steps) != max_steps or max_steps < 1:
-        raise ConfigError(f"max_steps must be an integer >= 1, got {max_steps!r}")
-    if not (rtol >= 0 and atol >= 0 and rtol + atol > 0):
-        raise ConfigError(f"rtol and atol must be >= 0 and not both 0, got {rtol!r}, {atol!r}")
-    if isinstance(covariance_scale, str) and covariance_scale not in ("chi2", "absolute"):
-        raise ConfigError(
-            f"covariance_scale {covariance_scale!r} is not 'chi2', 'absolute' or a number"
-        )
-    views = {"pixels": 1.0} if views is None else views
-    if truth is not None:
-        unknown = [p for p in truth if p not in space.paths]
-        if unknown:
-            raise ConfigError(f"truth names {unknown} which are not free parameters")
+        if solver not in SOLVERS:
+            raise ConfigError(f"solver {solver!r} is not one of {', '.join(SOLVERS)}")
+        if batch not in BATCH_MODES:
+            raise ConfigError(f"batch {batch!r} is not one of {', '.join(BATCH_MODES)}")
+        factors = tuple(coarse_to_fine)
+        if (
+            not factors
+            or any(not isinstance(f, int | np.integer) or f < 1 for f in factors)
+            or factors[-1] != 1
+        ):
+            raise ConfigError(
+                "coarse_to_fine must be integers >= 1 ending with 1, e.g. (4, 1); got "
+                f"{factors!r}"
+            )
+        if int(refine_top) != refine_top or refine_top < 1:
+            raise ConfigError(f"refine_top must be an integer >= 1, got {refine_top!r}")
+        if int(max_steps) != max_steps or max_steps < 1:
+            raise ConfigError(f"max_steps must be an integer >= 1, got {max_steps!r}")
+        if not (rtol >= 0 and atol >= 0 and rtol + atol > 0):
+            raise ConfigError(
+                f"rtol and atol must be >= 0 and not both 0, got {rtol!r}, {atol!r}"
+            )
+        if isinstance(covariance_scale, str) and covariance_scale not in ("chi2", "absolute"):
+            raise ConfigError(
+                f"covariance_scale {covariance_scale!r} is not 'chi2', 'absolute' or a number"
+            )
+        views = {"pixels": 1.0} if views is None else views
+        if truth is not None:
+            unknown = [p for p in truth if p not in space.paths]
+            if unknown:
+                raise ConfigError(f"truth names {unknown} which are not free parameters")
 
-    t_start = time.perf_counter()
-    fn_full = make_residual_fn(space, forward_template, target, views, view_options=view_options)
-    y0s = _latent_starts(space, starts, n_starts, key)
-    first_starts = [space.as_dict(v) for v in np.asarray(space.from_latent(y0s))]
+        self.t_start = time.perf_counter()
+        self.space, self.views, self.truth = space, views, truth
+        self.factors, self.refine_top = factors, int(refine_top)
+        self.covariance_scale, self.diagnostics = covariance_scale, diagnostics
+        self.progress, self.record_history = progress, bool(record_history)
+        self.solver = solver
+        self.cfg = _Config(solver, float(rtol), float(atol), int(max_steps), bool(record_history))
+        self.fn_full = make_residual_fn(
+            space, forward_template, target, views, view_options=view_options
+        )
+        y0s = _latent_starts(space, starts, n_starts, key)
+        self.first_starts = [space.as_dict(v) for v in np.asarray(space.from_latent(y0s))]
+        self.stages: list[dict[str, Any]] = []
+        self.compile_s = self.solve_s = 0.0
+        self.stage_y0 = y0s
+        self.origin = np.arange(y0s.shape[0])  # first-stage start each start descends from
+        self.steps_so_far = np.zeros(y0s.shape[0], dtype=int)
+        self.history: _History | None = None
 
-    stages: list[dict[str, Any]] = []
-    compile_s = solve_s = 0.0
-    stage_y0 = y0s
-    origin = np.arange(y0s.shape[0])  # first-stage start each current start descends from
-    steps_so_far = np.zeros(y0s.shape[0], dtype=int)
-    for s, factor in enumerate(factors):
-        fn = fn_full if factor == 1 else fn_full.with_factor(int(factor))
-        history = _History(s, len(factors), int(factor), stage_y0.shape[0], progress)
-        cfg = _Config(solver, float(rtol), float(atol), int(max_steps), bool(record_history))
-        sink = history if record_history else None
-        values, losses, codes, steps, t_c, t_s = _run_stage(fn, stage_y0, cfg, batch, sink)
-        compile_s += t_c
-        solve_s += t_s
+    @property
+    def n_stages(self) -> int:
+        return len(self.factors)
+
+    def stage_inputs(self, s: int) -> tuple[ResidualFn, Array, Callable | None]:
+        """Stage `s`'s residual function, latent starts and step-loss receiver."""
+        factor = self.factors[s]
+        fn = self.fn_full if factor == 1 else self.fn_full.with_factor(int(factor))
+        self.history = _History(
+            s, len(self.factors), int(factor), self.stage_y0.shape[0], self.progress
+        )
+        return fn, self.stage_y0, self.history if self.record_history else None
+
+    def stage_done(self, s, values, losses, codes, steps, t_c, t_s) -> None:
+        """Book stage `s`'s solves; pick the starts of the next stage."""
+        history = self.history
+        self.compile_s += t_c
+        self.solve_s += t_s
         losses = np.where(np.isfinite(losses), losses, np.inf)
         statuses = [
-            _status_message(int(c), int(n), float(lo), cfg)
+            _status_message(int(c), int(n), float(lo), self.cfg)
             for c, n, lo in zip(codes, steps, losses, strict=True)
         ]
         order = np.argsort(losses, kind="stable")
-        stages.append(
+        self.stages.append(
             {
-                "factor": int(factor),
-                "origin": [int(o) for o in origin],
+                "factor": int(self.factors[s]),
+                "origin": [int(o) for o in self.origin],
                 "n_steps": [int(n) for n in steps],
                 "final_loss": [float(v) for v in losses],
                 "converged": [c for c, _ in statuses],
                 "messages": [m for _, m in statuses],
                 "loss_history": [
-                    history.history(i, losses[i]) if record_history else [float(losses[i])]
-                    for i in range(stage_y0.shape[0])
+                    history.history(i, losses[i]) if self.record_history else [float(losses[i])]
+                    for i in range(self.stage_y0.shape[0])
                 ],
                 "best": int(order[0]),
                 "compile_s": t_c,
                 "solve_s": t_s,
             }
         )
-        steps_so_far = steps_so_far + steps.astype(int)
-        if s + 1 < len(factors):
+        self.steps_so_far = self.steps_so_far + steps.astype(int)
+        self.last = (values, order, statuses)
+        if s + 1 < len(self.factors):
             # The next, finer stage starts from the best few of this one.
-            keep = order[: max(1, min(int(refine_top), len(order)))]
-            stage_y0 = jnp.asarray(values[keep])
-            origin, steps_so_far = origin[keep], steps_so_far[keep]
-    k = int(order[0])
-    best_latent = jnp.asarray(values[k])
-    best_start = int(origin[k])
-    n_steps_total = int(steps_so_far[k])
-    converged, message = statuses[k]
+            keep = order[: max(1, min(self.refine_top, len(order)))]
+            self.stage_y0 = jnp.asarray(values[keep])
+            self.origin, self.steps_so_far = self.origin[keep], self.steps_so_far[keep]
 
-    values = space.as_dict(space.from_latent(best_latent))
-    if diagnostics:
-        cov, stderr, loss, n_res, s2, note = _covariance(
-            fn_full, best_latent, space, covariance_scale
+    def result(self) -> FitResult:
+        """The result after the last stage: the best start, its covariance and images."""
+        values, order, statuses = self.last
+        space, fn_full, factors, stages = self.space, self.fn_full, self.factors, self.stages
+        k = int(order[0])
+        best_latent = jnp.asarray(values[k])
+        best_start = int(self.origin[k])
+        n_steps_total = int(self.steps_so_far[k])
+        converged, message = statuses[k]
+
+        values = space.as_dict(space.from_latent(best_latent))
+        if self.diagnostics:
+            cov, stderr, loss, n_res, s2, note = _covariance(
+                fn_full, best_latent, space, self.covariance_scale
+            )
+            expected, predicted, variance = (
+                np.asarray(a) for a in _predict(fn_full, best_latent)
+            )
+            target_arr = np.asarray(fn_full.target)
+            sigma = np.sqrt(variance + 1e-30)
+            residual_map = np.where(
+                np.asarray(fn_full.saturated), 0.0, (target_arr - expected) / sigma
+            )
+        else:
+            p_ = space.size
+            cov, stderr = np.full((p_, p_), np.nan), np.full(p_, np.nan)
+            loss = float(stages[-1]["final_loss"][k])
+            shape = tuple(fn_full.target.shape)
+            n_res, s2, note = sum(v.size(shape) for v in fn_full.views), math.nan, ""
+            residual_map = predicted = None
+        n_starts_run = len(stages[0]["n_steps"])
+        where = (
+            f"stage {len(factors)}/{len(factors)} at full resolution" if len(factors) > 1 else ""
         )
-        expected, predicted, variance = (np.asarray(a) for a in _predict(fn_full, best_latent))
-        target_arr = np.asarray(fn_full.target)
-        sigma = np.sqrt(variance + 1e-30)
-        residual_map = np.where(np.asarray(fn_full.saturated), 0.0, (target_arr - expected) / sigma)
-    else:
-        p_ = space.size
-        cov, stderr = np.full((p_, p_), np.nan), np.full(p_, np.nan)
-        loss = float(stages[-1]["final_loss"][k])
-        shape = tuple(fn_full.target.shape)
-        n_res, s2, note = sum(v.size(shape) for v in fn_full.views), math.nan, ""
-        residual_map = predicted = None
-    n_starts_run = len(stages[0]["n_steps"])
-    where = f"stage {len(factors)}/{len(factors)} at full resolution" if len(factors) > 1 else ""
-    summary = (
-        f"{message} ({'best of ' + str(n_starts_run) + ' starts: start ' + str(best_start)}"
-        f"{'; ' + where if where else ''}){note}"
-    )
-    p = space.size
-    reduced = loss / (n_res - p) if n_res > p else math.nan
-    normalised = all(
-        isinstance(v, PixelView) and v.domain in ("anscombe", "pearson") for v in fn_full.views
-    )
-    if normalised and reduced > 3.0:
-        summary += (
-            f"; but the reduced chi-square is {reduced:.3g} (about 1 expected): the model does "
-            "not explain the photo — a local minimum (try more starts or a finer "
-            "coarse_to_fine), or a wrong noise model or model"
+        summary = (
+            f"{message} ({'best of ' + str(n_starts_run) + ' starts: start ' + str(best_start)}"
+            f"{'; ' + where if where else ''}){note}"
         )
-    return FitResult(
-        paths=list(space.paths),
-        values=values,
-        stderr={path: float(e) for path, e in zip(space.paths, stderr, strict=True)},
-        covariance=cov,
-        nuisance=[pp.path for pp in space.nuisance],
-        truth={k: float(v) for k, v in truth.items()} if truth else None,
-        loss=loss,
-        reduced_chi2=reduced,
-        n_residuals=n_res,
-        covariance_scale=s2,
-        converged=bool(converged),
-        message=summary,
-        n_steps=n_steps_total,
-        best_start=best_start,
-        timing_s={
-            "compile": compile_s,
-            "solve": solve_s,
-            "total": time.perf_counter() - t_start,
-        },
-        solver=solver,
-        views={k: float(v) for k, v in views.items()},
-        stages=stages,
-        starts=first_starts,
-        residual_map=residual_map,
-        model_image=predicted,
-    )
+        p = space.size
+        reduced = loss / (n_res - p) if n_res > p else math.nan
+        normalised = all(
+            isinstance(v, PixelView) and v.domain in ("anscombe", "pearson")
+            for v in fn_full.views
+        )
+        if normalised and reduced > 3.0:
+            summary += (
+                f"; but the reduced chi-square is {reduced:.3g} (about 1 expected): {POOR_FIT} "
+                "— a local minimum (try more starts or a finer coarse_to_fine), or a wrong "
+                "noise model or model"
+            )
+        truth = self.truth
+        return FitResult(
+            paths=list(space.paths),
+            values=values,
+            stderr={path: float(e) for path, e in zip(space.paths, stderr, strict=True)},
+            covariance=cov,
+            nuisance=[pp.path for pp in space.nuisance],
+            truth={k: float(v) for k, v in truth.items()} if truth else None,
+            loss=loss,
+            reduced_chi2=reduced,
+            n_residuals=n_res,
+            covariance_scale=s2,
+            converged=bool(converged),
+            message=summary,
+            n_steps=n_steps_total,
+            best_start=best_start,
+            timing_s={
+                "compile": self.compile_s,
+                "solve": self.solve_s,
+                "total": time.perf_counter() - self.t_start,
+            },
+            solver=self.solver,
+            views={k: float(v) for k, v in self.views.items()},
+            stages=stages,
+            starts=self.first_starts,
+            residual_map=residual_map,
+            model_image=predicted,
+        )
