@@ -75,10 +75,24 @@ def _reports_user_errors(command):
     return wrapper
 
 
+def _print_version(value: bool) -> None:
+    if value:
+        from invglare import __version__
+
+        typer.echo(f"invglare {__version__}")
+        raise typer.Exit()
+
+
 @app.callback()
 def _main(
     verbose: Annotated[int, typer.Option("--verbose", "-v", count=True, help="More logging.")] = 0,
     quiet: Annotated[bool, typer.Option("--quiet", "-q", help="Only errors.")] = False,
+    version: Annotated[
+        bool,
+        typer.Option(
+            "--version", callback=_print_version, is_eager=True, help="Print the version and exit."
+        ),
+    ] = False,
 ) -> None:
     level = logging.ERROR if quiet else (logging.DEBUG if verbose > 1 else logging.INFO)
     logging.basicConfig(level=level, format="%(message)s", stream=sys.stderr)
@@ -213,11 +227,15 @@ def scene(
     out: Annotated[Path, typer.Option("--out", "-o", help="Output EXR.")] = Path("scene.exr"),
     npix: Annotated[int, typer.Option(help="Image size in pixels.")] = 256,
     seed: Annotated[int, typer.Option(help="Random seed of the procedural scene.")] = 0,
+    depth: Annotated[
+        Path | None,
+        typer.Option(help="Also write the scene's depth buffer (EXR, Z in metres) here."),
+    ] = None,
 ) -> None:
     """Write one of the bundled procedural HDR scenes (linear cd/m^2) as EXR."""
     from invglare.commands.render import run_scene
 
-    run_scene(name, out, npix, seed)
+    run_scene(name, out, npix, seed, depth)
 
 
 @app.command()
@@ -399,6 +417,78 @@ def fit(
     from invglare.commands.fit import run_fit
 
     run_fit(config, out_dir, n_starts, max_steps, progress)
+
+
+@app.command("fit-batch")
+@_reports_user_errors
+def fit_batch(
+    config: Annotated[Path, typer.Argument(help="Fit config (TOML), e.g. fits/eye_daylight.toml.")],
+    photos: Annotated[
+        list[str],
+        typer.Argument(
+            help="Photos: files, folders, quoted globs ('data/*.exr') or a .csv photo table "
+            "(columns photo, name, pixel_scale_deg, saturation, channel, linear, truth)."
+        ),
+    ],
+    out_dir: Annotated[
+        Path | None,
+        typer.Option(
+            help="The fit's report folder (default: fit.out_dir or reports/NAME); the batch "
+            "goes to its batch/ subfolder."
+        ),
+    ] = None,
+    scheduler: Annotated[
+        str | None,
+        typer.Option(
+            help="Address of a running Dask scheduler (tcp://HOST:PORT); default: a local "
+            "cluster, closed at the end."
+        ),
+    ] = None,
+    workers: Annotated[
+        int | None, typer.Option(help="Worker processes of the local cluster (default: cores).")
+    ] = None,
+    vmap: Annotated[
+        int, typer.Option(help="Fit up to this many same-size photos in one vmapped solve.")
+    ] = 1,
+    n_starts: Annotated[int | None, typer.Option(help="Override solver.n_starts.")] = None,
+    max_steps: Annotated[int | None, typer.Option(help="Override solver.max_steps.")] = None,
+    resume: Annotated[
+        bool, typer.Option(help="Skip photos whose report exists (--no-resume refits them).")
+    ] = True,
+    cache_dir: Annotated[
+        Path | None,
+        typer.Option(
+            help="JAX's persistent compilation cache on the workers (default "
+            "~/.cache/invglare/jax)."
+        ),
+    ] = None,
+    progress: Annotated[bool, typer.Option(help="Show a progress bar over photos.")] = True,
+) -> None:
+    """Fit one config to many photos on Dask: reports/NAME/batch/PHOTO/ and a batch table.
+
+    Each photo is a task on a local cluster (one single-threaded worker process per
+    core) or on the cluster at --scheduler. A photo that fails is recorded with its
+    reason and the others go on; the exit status is 1 when any failed or did not
+    converge. A rerun skips the photos that have a report (an interrupted batch resumes).
+    """
+    from invglare.commands.fit_batch import run_fit_batch
+
+    summary = run_fit_batch(
+        config, photos, out_dir=out_dir, scheduler=scheduler, workers=workers, vmap=vmap,
+        n_starts=n_starts, max_steps=max_steps, resume=resume, progress=progress,
+        cache_dir=cache_dir,
+    )  # fmt: skip
+    failures = summary.failures
+    if failures:
+        for row in failures:
+            typer.echo(f"FAIL {row.name} ({row.status}): {row.reason}", err=True)
+        typer.echo(
+            f"invglare fit-batch: {len(failures)} of {len(summary.rows)} photo(s) failed or did "
+            f"not converge: {', '.join(r.name for r in failures)} "
+            f"(see {summary.folder / 'batch.md'})",
+            err=True,
+        )
+        raise typer.Exit(code=1)
 
 
 @app.command()

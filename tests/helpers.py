@@ -1,4 +1,5 @@
-"""Shared test utilities: float64 context, finite-difference gradient checks, a toy PSF."""
+"""Shared test utilities: float64 context, finite-difference gradient checks, a toy PSF, a
+small population of disk photos for batch fits."""
 
 from __future__ import annotations
 
@@ -119,3 +120,107 @@ def assert_grad_converges(
     converged = abs(fds[0] - fds[1]) <= floor
     assert errors[1] <= max(0.5 * errors[0], floor) or converged, "not converging: " + msg
     return ad, fds[0], fds[1]
+
+
+# A population of small disk photos (pupils, fluxes, centres, noise of their own) and one
+# fit config for them: `invglare fit-batch` tests and the batch benchmark's test.
+DISK_MODEL = """
+[model]
+kind = "aperture"
+focal_length_mm = 17.0
+aperture_npix = 48
+window_mm = 5.4
+
+[[model.shapes]]
+kind = "disk"
+diameter_mm = 3.5
+
+[output]
+npix = 48
+pixel_scale_deg = 0.0035
+
+[spectrum]
+wavelengths_nm = 550
+"""
+
+DISK_POPULATION = """
+[synth]
+model = "model.toml"
+seed = 40
+out = "crowd"
+
+[population]
+size = 4
+seed = 11
+name = "disk"
+
+[population.set]
+"model.aperture.shapes[0].diameter_mm" = ["uniform", 2.6, 3.6]
+
+[population.observation]
+flux = ["loguniform", 6e5, 2e6]
+dx_px = ["uniform", -0.3, 0.3]
+dy_px = ["uniform", -0.3, 0.3]
+
+[observation]
+background = 20.0
+gain = 2.0
+read_noise = 3.0
+saturation = 30000.0
+"""
+
+DISK_FIT = """
+[target]
+file = "crowd/disk_00.exr"
+saturation = 30000.0
+
+[model]
+config = "model.toml"
+
+[observation]
+gain = 2.0
+read_noise = 3.0
+
+[[free]]
+path = "model.aperture.shapes[0].diameter_mm"
+lower = 2.0
+upper = 5.0
+
+[[free]]
+path = "obs.flux"
+lower = 0.0
+upper = inf
+
+[[free]]
+path = "obs.background"
+lower = -100.0
+upper = 1000.0
+
+[[free]]
+path = "obs.dx_px"
+lower = -2.0
+upper = 2.0
+
+[[free]]
+path = "obs.dy_px"
+lower = -2.0
+upper = 2.0
+
+[solver]
+n_starts = 2
+max_steps = 60
+"""
+
+
+
+
+def disk_population(folder, size: int = 4):
+    """Write model.toml, population.toml and fit.toml into `folder` and synthesise the
+    photos crowd/disk_00.exr ... (with truths). **Returns:** `folder`."""
+    from invglare.commands.synth import run_synth
+
+    (folder / "model.toml").write_text(DISK_MODEL)
+    (folder / "population.toml").write_text(DISK_POPULATION.replace("size = 4", f"size = {size}"))
+    (folder / "fit.toml").write_text(DISK_FIT)
+    run_synth([folder / "population.toml"])
+    return folder

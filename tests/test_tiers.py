@@ -63,9 +63,10 @@ def _imported(node: ast.AST, module: str, is_package: bool) -> list[str]:
             prefix = ".".join(base + ([node.module] if node.module else []))
         else:
             prefix = node.module or ""
-        # `from invglare import fit` names the subpackage through the alias.
+        # `from invglare import fit` names the subpackage through the alias;
+        # `from invglare import __version__` names the package face, which imports nothing.
         if prefix == invglare.__name__:
-            return [f"{prefix}.{a.name}" for a in node.names]
+            return [prefix if a.name.startswith("__") else f"{prefix}.{a.name}" for a in node.names]
         return [prefix]
     return []
 

@@ -8,7 +8,9 @@ Two kinds of record go to ``reports/bench.json`` (``{"meta", "records", "fit"}``
 - **fit benchmarks** (:data:`invglare.bench.fit.FIT_CASES`), run once (not per size):
   invglare's fit against scipy's finite-difference least squares, side by side; and the
   **sampling benchmark** (:data:`invglare.bench.sample.SAMPLE_CASES`): emcee steps of a
-  posterior with batched and per-walker log-probabilities (kept with the fit records).
+  posterior with batched and per-walker log-probabilities (kept with the fit records); and
+  the **batch benchmark** (:data:`invglare.bench.batch.BATCH_CASES`): photos per minute
+  of ``invglare fit-batch`` on 1 and 2 Dask workers, a task's overhead, ``--vmap``.
 
 Speed is only ever reported as ratios of times measured in the same run, never asserted.
 """
@@ -29,11 +31,13 @@ from typing import Any
 from tqdm import tqdm
 
 from invglare._core.allocator import retain_freed_memory
+from invglare.bench.batch import BATCH_CASES
 from invglare.bench.cases import CASES as STATIC_CASES
 from invglare.bench.cases import Case
 from invglare.bench.fit import FIT_CASES
 from invglare.bench.holographic_cases import HOLOGRAPHIC_CASES, paper_markdown
 from invglare.bench.peer_cases import PEER_CASES, cpu_info
+from invglare.bench.quad_cases import QUAD_CASES, quad_markdown
 from invglare.bench.sample import SAMPLE_CASES
 from invglare.bench.temporal_cases import TEMPORAL_CASES, stage_markdown
 from invglare.bench.timing import load_1m, measure
@@ -51,13 +55,15 @@ BUDGET_S = 20.0
 REFERENCES = ("fft_jax",)
 #: Every per-size case: the static models, the temporal model's frame pipeline, the
 #: veiling series against the ghost count, the holographic eye against the paper's rows,
-#: and the torch layer against the same JAX call.
+#: the torch layer against the same JAX call, and the quad-based transforms against the
+#: paper's tables.
 CASES: tuple[Case, ...] = (
     *STATIC_CASES,
     *TEMPORAL_CASES,
     *VEILING_CASES,
     *HOLOGRAPHIC_CASES,
     *TORCH_CASES,
+    *QUAD_CASES,
 )
 
 #: Header notes of bench.md (also in bench.json's meta).
@@ -98,16 +104,17 @@ def select(patterns: list[str], skip: list[str] | None = None) -> tuple[list[Cas
     # The references every ratio is taken against run with any pipeline.
     always = [c for c in CASES if c.kind == "floor" or c.name in REFERENCES]
     cases = [c for c in CASES if c in pipelines or (pipelines and c in always)]
-    fits = [name for name in (*FIT_CASES, *SAMPLE_CASES, *UNKNOWN_DRAW_CASES) if wanted(name)]
+    fits = [
+        name
+        for name in (*FIT_CASES, *SAMPLE_CASES, *UNKNOWN_DRAW_CASES, *BATCH_CASES)
+        if wanted(name)
+    ]
     # The peers (other packages, installed by the bench extra) run only when named.
     fits += [name for name in PEER_CASES if patterns and wanted(name)]
     if not pipelines and not fits:
         names = ", ".join(
             [c.name for c in CASES]
-            + list(FIT_CASES)
-            + list(SAMPLE_CASES)
-            + list(UNKNOWN_DRAW_CASES)
-            + list(PEER_CASES)
+            + [*FIT_CASES, *SAMPLE_CASES, *UNKNOWN_DRAW_CASES, *BATCH_CASES, *PEER_CASES]
         )
         raise ConfigError(
             f"no benchmark case matches {patterns}"
@@ -248,6 +255,11 @@ def run_bench(
 
                 log.info("running the peers benchmark (dLux, hcipy, poppy; a minute or two)")
                 record = run_peer_benchmark(repeats, budget_s)
+            elif name in BATCH_CASES:
+                from invglare.bench.batch import run_batch_benchmark
+
+                log.info("running the batch benchmark %s on Dask (minutes)", name)
+                record = run_batch_benchmark()
             elif name in SAMPLE_CASES:
                 log.info("running the sampling benchmark %s (a few minutes)", name)
                 record = run_sample_benchmark()
@@ -350,6 +362,7 @@ def _num(x: float | None, fmt: str) -> str:
 
 def render_markdown(records: list[dict], meta: dict, fit_records: list[dict] | None = None) -> str:
     """bench.md: notes, a ratio overview (case x N), the full table, the fit section."""
+    from invglare.bench.batch import batch_markdown
     from invglare.bench.fit import fit_markdown
     from invglare.bench.peer_cases import peers_markdown
     from invglare.bench.sample import sample_markdown
@@ -413,7 +426,7 @@ def render_markdown(records: list[dict], meta: dict, fit_records: list[dict] | N
                 f"| {_num(r.get('first_call_s'), '.2f')} | {r.get('repeats', '')} "
                 f"| {_num(r.get('cpu_per_wall'), '.2f')} | {_num(r.get('load_1m'), '.1f')} |"
             )
-        for section in (stage_markdown, paper_markdown, overhead_markdown):
+        for section in (stage_markdown, paper_markdown, overhead_markdown, quad_markdown):
             extra = section(records)
             lines += ["", *extra] if extra else []
         lines += ["", "Cases:", ""]
@@ -429,6 +442,7 @@ def render_markdown(records: list[dict], meta: dict, fit_records: list[dict] | N
             "sample": sample_markdown,
             "peers": peers_markdown,
             "unknown_draw": unknown_draw_markdown,
+            "batch": batch_markdown,
         }.get(kind, fit_markdown)
         section = markdown(record)
         lines += ["", *section]

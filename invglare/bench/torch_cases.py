@@ -151,17 +151,21 @@ def _glare(n: int):
     return run
 
 
-def _glare_jax(n: int):
-    if _torch() is None:
-        return None
+def _glare_jax_inputs(n: int):
+    """The Glare layer's compiled bridge, its constant leaves, latent and image, in JAX."""
     import jax.numpy as jnp
 
     from invglare.torch import to_jax
 
     layer = _glare_layer(n)
     bridge = layer._psf_convolve
-    latent, image = to_jax(layer.psf.latent), jnp.asarray(_image(n))
-    leaves = bridge.consts_for(False)
+    return bridge, bridge.consts_for(False), to_jax(layer.psf.latent), jnp.asarray(_image(n))
+
+
+def _glare_jax(n: int):
+    if _torch() is None:
+        return None
+    bridge, leaves, latent, image = _glare_jax_inputs(n)
     return lambda: bridge.jax_forward(leaves, latent, image)
 
 
@@ -186,12 +190,7 @@ def _glare_grad_jax(n: int):
         return None
     import jax.numpy as jnp
 
-    from invglare.torch import to_jax
-
-    layer = _glare_layer(n)
-    bridge = layer._psf_convolve
-    latent, image = to_jax(layer.psf.latent), jnp.asarray(_image(n))
-    leaves = bridge.consts_for(False)
+    bridge, leaves, latent, image = _glare_jax_inputs(n)
     w = jnp.asarray(_weights((1, 3, n, n), 3))
 
     def run():

@@ -249,8 +249,10 @@ def _read_setup(config: dict[str, Any], n_starts: int | None, max_steps: int | N
             fields[key] = value
     rng.finish()
     solver = Section(config.get("solver", {}), "solver")
-    fields["n_starts"] = solver.get("n_starts", int, 3) if n_starts is None else n_starts
-    fields["max_steps"] = solver.get("max_steps", int, 60) if max_steps is None else max_steps
+    # Read both keys even when overridden: a key the config gives is known either way.
+    config_starts, config_steps = solver.get("n_starts", int, 3), solver.get("max_steps", int, 60)
+    fields["n_starts"] = config_starts if n_starts is None else n_starts
+    fields["max_steps"] = config_steps if max_steps is None else max_steps
     solver.finish()
     for key in ("n_starts", "max_steps", "aperture_npix", "npix"):
         if key in fields and fields[key] < 1:

@@ -6,8 +6,9 @@ mistakes surface before any compilation), the fit (:meth:`FitSetup.fit
 :mod:`invglare.fit.stages`) runs in float64 with a progress bar per discrete choice,
 and the report is written by :func:`invglare.fit.report.write_report`, atomically as a
 whole: an interrupted run (Ctrl-C) leaves no half-written report and keeps the
-previous one. This module holds the command only: reading, the sweep over discrete
-choices, progress, writing.
+previous one. This module holds the command only: reading, progress and logging; the
+sweep over discrete choices and the report are :func:`invglare.config.photo_fit.fit_and_report`'s
+(which ``invglare fit-batch`` runs for each photo on its workers).
 
 **Example:**
 
@@ -21,7 +22,6 @@ from __future__ import annotations
 
 import contextlib
 import logging
-import math
 import time
 import warnings
 from collections.abc import Iterator
@@ -139,29 +139,6 @@ def _fit(setup, forward, label: str, progress: bool, **kwargs):
     return result
 
 
-def _loss_key(result) -> float:
-    return result.loss if math.isfinite(result.loss) else math.inf
-
-
-def _choice_label(choice: dict[str, int]) -> str:
-    return ", ".join(f"{k.rsplit('.', 1)[-1]}={v}" for k, v in choice.items())
-
-
-def _model_sections(setup, result) -> dict[str, tuple[str, list[str], Any]]:
-    """Report sections particular to the model's kind (e.g. the ghosts of a veiling fit)."""
-    import jax
-
-    from invglare.config.model import kind_of
-
-    kind = kind_of(setup.forward.model)
-    if kind.report is None:
-        return {}
-    with jax.enable_x64(True):
-        values = setup.space.values_from(result.values)
-        fitted = setup.space.apply(setup.forward, values).model
-        return kind.report(fitted, setup.truth_model())
-
-
 def run_fit(
     config: Path,
     out_dir: Path | None = None,
@@ -199,76 +176,31 @@ def run_fit(
 
 def _fit_and_report(setup, t0: float, progress: bool) -> Path:
     """The fit of a loaded setup, and its report (the folder's lock held)."""
-    import jax
+    from invglare.config.photo_fit import fit_and_report
 
-    from invglare.fit.report import ReportInfo, write_report
-
-    with jax.enable_x64(True):
-        log.info(
-            "fitting %s: %d free parameters, %d starts, views %s; %s",
-            setup.target_path,
-            setup.space.size,
-            setup.starts.shape[0],
-            ", ".join(setup.views),
-            "ground truth known" if setup.truth else "no ground truth",
-        )
-        candidates = setup.candidates()
-        # With stages and several discrete choices, only the choice whose early stages
-        # end lowest gets the (costlier, pixel-wise) final stage.
-        sweep_early = len(candidates) > 1 and bool(setup.stages)
-        runs: list[tuple[dict[str, int], Any]] = []
-        for k, choice in enumerate(candidates):
-            label = "fit" if not choice else f"fit {_choice_label(choice)} ({k + 1}/"
-            label += f"{len(candidates)})" if choice else ""
-            forward = setup.forward_for(choice)
-            log.info("%s: compiling the solve (once per model structure), then solving", label)
-            result = _fit(setup, forward, label, progress, final=not sweep_early)
-            runs.append((choice, result))
-        if sweep_early:
-            choice, early = min(runs, key=lambda r: _loss_key(r[1]))
-            label = f"fit {_choice_label(choice)}, final stage"
-            result = _fit(setup, setup.forward_for(choice), label, progress, resume=early)
-            final_choice, final_result = choice, result
-        else:
-            final_choice, final_result = min(runs, key=lambda r: _loss_key(r[1]))
-
-    best_choice, best = final_choice, final_result
-    discrete = [
-        {
-            "choice": choice,
-            "loss": res.loss,
-            "reduced_chi2": res.reduced_chi2,
-            "converged": res.converged,
-            "message": res.message,
-            "timing_s": res.timing_s,
-            "views": res.stages[-1].get("views", setup.views) if res.stages else setup.views,
-        }
-        for choice, res in runs
-        if choice
-    ]
-    info = ReportInfo(
-        name=setup.name,
-        target=setup.target,
-        pixel_scale_deg=setup.pixel_scale_deg,
-        saturation=setup.forward.obs.saturation,
-        config_path=setup.config_path,
-        target_path=setup.target_path,
-        model_path=setup.model_path,
-        truth_path=setup.truth_path,
-        n_starts=int(setup.starts.shape[0]),
-        solver=setup.solver,
-        discrete=discrete,
-        discrete_truth={d.path: d.truth for d in setup.discrete},
-        view_options=setup.view_options,
-        sections=_model_sections(setup, best),
+    log.info(
+        "fitting %s: %d free parameters, %d starts, views %s; %s",
+        setup.target_path,
+        setup.space.size,
+        setup.starts.shape[0],
+        views_in_order(setup.stages, setup.views),
+        "ground truth known" if setup.truth else "no ground truth",
     )
-    info.wall_s = time.perf_counter() - t0
-    folder = write_report(setup.out_dir, best, info)
-    if best_choice:
-        log.info("best discrete choice: %s", _choice_label(best_choice))
+
+    def run(forward, label, **kwargs):
+        log.info("%s: compiling the solve (once per model structure), then solving", label)
+        return _fit(setup, forward, label, progress, **kwargs)
+
+    folder, best = fit_and_report(setup, run, started=t0)
     log.info("%s", best.summary())
-    log.info("wrote %s (report.md, params.json, figures) in %.1f s", folder, info.wall_s)
+    wall = time.perf_counter() - t0
+    log.info("wrote %s (report.md, params.json, figures) in %.1f s", folder, wall)
     return folder
+
+
+def views_in_order(stages, final_views) -> str:
+    """Every stage's views, then the final fit's: ``"radial, angular then pixels"``."""
+    return " then ".join(", ".join(v) for v in [*(st.views for st in stages), final_views])
 
 
 def run_reference_fit(config: Path, *, progress: bool = True, **overrides: Any) -> Path:

@@ -70,7 +70,7 @@ def run_regress(
                 f"PSNR {m.psnr_db:.1f} dB, EE {m.ee_diff:.2e}"
             )
         log.info("%-26s %-7s %s", r.case.name, r.status, detail)
-    log.info("wrote %s and %d figures in %s", report, len(results), report.parent / "regression")
+    log.info("wrote %s and %d figures in %s", report, len(results), report.with_suffix(""))
     if update:
         log.info(
             "updated %d golden(s) in %s: %s",

@@ -25,7 +25,7 @@ ANIMATION_CHUNK = 8
 MIN_SCENE_NPIX = 8
 
 
-def run_scene(name: str, out: Path, npix: int, seed: int) -> None:
+def run_scene(name: str, out: Path, npix: int, seed: int, depth: Path | None = None) -> None:
     from invglare.commands import options
     from invglare.files.outputs import output_file
     from invglare.render.scenes import SCENES, write_scene
@@ -33,11 +33,15 @@ def run_scene(name: str, out: Path, npix: int, seed: int) -> None:
     if name not in SCENES:
         raise ConfigError(f"unknown scene {name!r}; bundled scenes: {', '.join(SCENES)}")
     out = output_file(out, "--out", (".exr",))
+    if depth is not None:
+        depth = output_file(depth, "--depth", (".exr",))
     options.count(npix, "--npix", MIN_SCENE_NPIX)
     options.count(seed, "--seed", 0)
     options.raster(npix, "--npix", channels=3, copies=3)
-    write_scene(name, out, npix=npix, seed=seed)
+    write_scene(name, out, npix=npix, seed=seed, depth_path=depth)
     log.info("wrote %s (%s, %dx%d, linear cd/m^2)", out, name, npix, npix)
+    if depth is not None:
+        log.info("wrote %s (its depth buffer: Z, planar metres)", depth)
 
 
 def psf_at_scale(model, scale_deg: float, max_npix: int):

@@ -152,6 +152,16 @@ def _sample_and_report(
     from invglare.fit.sample import sample
 
     params_path = setup.out_dir / "params.json"
+    if not params_path.is_file() and out_dir is not None:
+        # A posterior written elsewhere starts from the fit stored in the config's own
+        # report folder, when there is one, instead of running the whole fit again.
+        from invglare.config.fit import read_fit_section
+        from invglare.files.toml import load_toml
+
+        _, own_dir = read_fit_section(load_toml(Path(config)), Path(config), None)
+        if (own_dir / "params.json").is_file():
+            params_path = own_dir / "params.json"
+            log.info("using the stored fit %s", params_path)
     if not params_path.is_file():
         from invglare.commands.fit import run_fit
 

@@ -27,7 +27,7 @@ from __future__ import annotations
 import logging
 from pathlib import Path
 
-from invglare.config.synth import load_synth
+from invglare.config.synth import SynthSpec, load_synth_specs
 from invglare.config.synth_photo import (
     HALF_MAX_ERROR_SIGMA,
     TRUTH_FORMAT,
@@ -48,6 +48,7 @@ __all__ = [
     "observation_table",
     "run_synth",
     "synthesize",
+    "write_population_tables",
     "write_synth",
 ]
 
@@ -60,7 +61,8 @@ def run_synth(specs: list[Path], out_dir: Path | None = None) -> list[Path]:
 
     if out_dir is not None:
         output_folder(out_dir, "--out-dir")
-    parsed = [load_synth(p, out_dir) for p in specs]  # every spec is checked before any work
+    # Every spec is checked before any work; a population spec gives one per member.
+    parsed = [member for p in specs for member in load_synth_specs(p, out_dir)]
     for spec in parsed:
         where = "--out-dir" if out_dir is not None else f"the folder of {spec.path}"
         output_file(spec.out_exr, where, (".exr",))
@@ -81,4 +83,29 @@ def run_synth(specs: list[Path], out_dir: Path | None = None) -> list[Path]:
             truth_file.name,
         )
         written.append(exr)
+    write_population_tables([spec for spec in parsed if spec.drawn])
+    return written
+
+
+def write_population_tables(members: list[SynthSpec]) -> list[Path]:
+    """``population.csv`` in each population's folder: per member its photo, noise seed
+    and drawn values (the truth of each is in its ``NAME.truth.json``). **Returns:** paths."""
+    import csv
+    import io
+
+    from invglare.files.atomic import write_text_atomic
+
+    folders: dict[Path, list[SynthSpec]] = {}
+    for spec in members:
+        folders.setdefault(spec.out_dir, []).append(spec)
+    written = []
+    for folder, group in folders.items():
+        keys = list(dict.fromkeys(k for spec in group for k in spec.drawn))
+        buffer = io.StringIO()
+        out = csv.writer(buffer, lineterminator="\n")
+        out.writerow(["photo", "noise_seed", *keys])
+        for spec in group:
+            out.writerow([spec.out_exr.name, spec.seed, *(spec.drawn.get(k, "") for k in keys)])
+        written.append(write_text_atomic(folder / "population.csv", buffer.getvalue()))
+        log.info("wrote %s (%d members)", folder / "population.csv", len(group))
     return written

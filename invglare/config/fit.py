@@ -394,6 +394,7 @@ def load_fit(
     out_dir: str | Path | None = None,
     n_starts: int | None = None,
     max_steps: int | None = None,
+    config: Mapping[str, Any] | None = None,
 ) -> FitSetup:
     """Read a fit config, the photo and the model; check them; return a :class:`FitSetup`.
 
@@ -402,6 +403,9 @@ def load_fit(
     - `path`: the fit config (TOML, see the module docstring).
     - `out_dir`: override ``fit.out_dir`` (relative to the current folder).
     - `n_starts`, `max_steps`: override the solver settings.
+    - `config`: the config's tables, already read (and perhaps edited: ``invglare
+      fit-batch`` puts each photo into ``[target]``), used instead of reading `path`;
+      relative paths in it are still relative to `path`'s folder.
 
     The model is built in the current JAX precision: call this inside
     ``jax.enable_x64(True)`` for a float64 fit (as ``invglare fit`` does).
@@ -419,7 +423,7 @@ def load_fit(
     from invglare.fit.streaks import lash_guesses
 
     config_path = Path(path)
-    config = load_toml(config_path)
+    config = load_toml(config_path) if config is None else dict(config)
     base = config_path.parent
     check_sections(config, SECTIONS, str(config_path))
 

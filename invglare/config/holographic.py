@@ -231,9 +231,12 @@ def holographic_from_config(
         raise ConfigError(f"spectrum.wavelengths_nm must be numbers (nm), got {lams!r}")
     with prefixed("spectrum.wavelengths_nm" if wavelengths_nm is None else "wavelengths"):
         check_wavelengths_nm(lams)
-    scale = pixel_scale_deg if pixel_scale_deg is not None else scale
     if scale is not None and window is not None:
         raise ConfigError("give model.window_mm or output.pixel_scale_deg, not both")
+    if pixel_scale_deg is not None:
+        # An override (--pixel-scale-deg, a fitted photo's scale) sets the sampling, as it
+        # does for every model kind: it replaces the window the config gives.
+        scale, window = pixel_scale_deg, None
     return HolographicEye.build(
         eye,
         npix=out_npix if npix is None else npix,

@@ -9,7 +9,16 @@ shapes has a default)::
     propagation = "fraunhofer"    # or "fresnel" (the E term of Ritschel et al., eq. 3)
     aperture_npix = 256           # raster size of the aperture window
     window_mm = 4.1               # default: the aperture's extent plus 2 px each side
-    method = "auto"               # "fft", "mft" or "auto"
+    method = "auto"               # "fft", "mft", "auto", "quad" or "polygon"
+
+    [model.quad]                  # only with method = "quad" (every key optional)
+    base_level = 0                # 1: the paper's half-size quadtree (approximate)
+    band = 0                      # pixels around soft edges kept as single quads (-1: none)
+    symmetry = "auto"             # skip the odd parts of a mirror-symmetric aperture
+    cull_below = 0.0              # skip tiles below this fraction of the peak (sec. 4.3)
+
+    [model.polygon]               # only with method = "polygon"
+    arc_segments = 16             # chords per arc of a rounded blade or capsule end
 
     [[model.shapes]]              # union of "open" shapes times all "block" shapes
     kind = "disk"                 # disk, ellipse, polygon, capsule, image
@@ -115,6 +124,32 @@ def square_npix(npix: int | tuple[int, int] | None, source: str) -> int | None:
     return ny
 
 
+#: The keys of each method's own table and their types.
+_OPTION_KEYS = {
+    "quad": {"base_level": int, "band": int, "symmetry": str, "cull_below": float, "tile": int},
+    "polygon": {"arc_segments": int, "band": int},
+}
+
+
+def method_options(model: Section, method: str) -> dict[str, Any] | None:
+    """The ``[model.quad]`` or ``[model.polygon]`` table of the chosen method (or None).
+
+    A method's table under another method is refused: it would be silently ignored.
+    """
+    chosen = None
+    for name, keys in _OPTION_KEYS.items():
+        table = model.section(name)
+        if table is None:
+            continue
+        if name != method:
+            raise ConfigError(
+                f"[model.{name}] sets options of method = {name!r}, but method = {method!r}"
+            )
+        chosen = {key: table.get(key, kind, None) for key, kind in keys.items()}
+        table.finish()
+    return None if chosen is None else {k: v for k, v in chosen.items() if v is not None}
+
+
 def read_raster_model(
     config: dict[str, Any],
     base_dir: str | Path | None = None,
@@ -167,6 +202,7 @@ def read_raster_model(
         window_mm=model.get("window_mm", float, None),
         method=model.choice("method", METHODS, "auto"),
     )
+    sampling["method_options"] = method_options(model, sampling["method"])
     model.finish()
 
     output = Section(config.get("output", {}), "output")

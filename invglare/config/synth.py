@@ -50,7 +50,7 @@ from invglare.errors import ConfigError, PhysicsRangeError
 from invglare.files.toml import load_toml
 
 #: Top-level tables of a synth spec.
-SECTIONS = ("synth", "set", "observation", "model", "output", "spectrum")
+SECTIONS = ("synth", "set", "observation", "model", "output", "spectrum", "population")
 #: Observation fields a spec may give (see :class:`invglare.fit.Observation`).
 OBSERVATION_KEYS = (
     "flux",
@@ -87,6 +87,8 @@ class SynthSpec:
     - `seed`: the noise seed.
     - `pixel_type`: ``"half"`` or ``"float"``.
     - `out_dir`: the folder the outputs go to.
+    - `drawn`: for a member of a population (:mod:`invglare.config.population`), the
+      values drawn for it, ``{key: value}`` (empty otherwise).
     """
 
     path: Path
@@ -99,6 +101,7 @@ class SynthSpec:
     seed: int
     pixel_type: str
     out_dir: Path
+    drawn: dict[str, Any] = dataclasses.field(default_factory=dict)
 
     @property
     def out_exr(self) -> Path:
@@ -142,6 +145,53 @@ def read_observation(table: Any, where: str = "observation") -> dict[str, float 
     return out
 
 
+def load_synth_specs(path: str | Path, out_dir: str | Path | None = None) -> list[SynthSpec]:
+    """The photos a synth spec describes: itself, or each member of its ``[population]``.
+
+    A population's members (see :mod:`invglare.config.population`) are named
+    ``NAME_00``, ``NAME_01``, ... and go into the folder ``synth.out`` (default: the spec's
+    stem) beside the spec (or in `out_dir`); member `i` has the noise seed
+    ``synth.seed + i`` and its drawn values written into its model config, ``[set]`` and
+    ``[observation]``.
+
+    **Raises:** :class:`~invglare.errors.ConfigError` as :func:`load_synth` does, and for
+    a bad ``[population]`` table or a drawn model-config key the model config lacks.
+    """
+    import copy
+
+    from invglare.config.paths import get_key, set_key
+    from invglare.config.population import member_values, read_population
+
+    spec_path = Path(path)
+    config = load_toml(spec_path)
+    if "population" not in config:
+        return [load_synth(spec_path, out_dir)]
+    population = read_population(config["population"])
+    base = _load(spec_path, {k: v for k, v in config.items() if k != "population"}, out_dir)
+    folder = base.out_dir / base.name
+    members = []
+    for i, member in enumerate(population.draw()):
+        model_config = copy.deepcopy(base.model_config)
+        for key, value in member["config"].items():
+            # The key's table must exist; the key itself may be new (a default made explicit).
+            get_key(model_config, key.rsplit(".", 1)[0], f"population.config.{key!r}")
+            set_key(model_config, key, value)
+        members.append(
+            dataclasses.replace(
+                base,
+                name=population.member_name(base.name, i),
+                model_config=model_config,
+                set_values={**base.set_values, **{k: float(v) for k, v in member["set"].items()}},
+                observation={**base.observation, **member["observation"]},
+                seed=base.seed + i,
+                out_dir=folder,
+                drawn=member_values(member),
+            )
+        )
+        _check_observation(members[-1].observation)
+    return members
+
+
 def _check_observation(observation: dict[str, float | None]) -> None:
     """Every field's range, as the photo model checks it, before any model is built."""
     from invglare.errors import InvglareError
@@ -167,6 +217,15 @@ def load_synth(path: str | Path, out_dir: str | Path | None = None) -> SynthSpec
     """
     spec_path = Path(path)
     config = load_toml(spec_path)
+    if "population" in config:
+        raise ConfigError(
+            f"{spec_path} describes a population of photos ([population]); read it with "
+            "load_synth_specs"
+        )
+    return _load(spec_path, config, out_dir)
+
+
+def _load(spec_path: Path, config: dict[str, Any], out_dir: str | Path | None) -> SynthSpec:
     source = str(spec_path)
     check_sections(config, SECTIONS, source)
     synth = Section(config.get("synth", {}), "synth")

@@ -8,6 +8,7 @@ atomically. Here, below the commands, so that the benchmarks can draw photos too
 
 from __future__ import annotations
 
+import functools
 import json
 import math
 from pathlib import Path
@@ -60,6 +61,19 @@ def build_truth_forward(spec: SynthSpec):
     return forward
 
 
+@functools.cache
+def _draw():
+    """The jitted draw of a noisy photo and its mean counts: made once, so that the members
+    of a population (one structure) share one compiled program."""
+    import equinox as eqx
+
+    def draw(fwd, key):
+        psf = fwd.model()
+        return fwd.obs.sample(key, psf), fwd.obs.expected(psf)
+
+    return eqx.filter_jit(draw)
+
+
 def synthesize(spec: SynthSpec) -> tuple[np.ndarray, dict[str, Any]]:
     """Draw the spec's photo. **Returns:** ``(photo as stored, truth dict)``; nothing is written."""
     import equinox as eqx
@@ -73,13 +87,7 @@ def synthesize(spec: SynthSpec) -> tuple[np.ndarray, dict[str, Any]]:
                 f"{spec.path}: the model gives a PSF of shape {shape}; a synthetic photo needs a "
                 "monochrome model: set [spectrum] wavelengths_nm to one value"
             )
-
-        @eqx.filter_jit
-        def draw(fwd, key):
-            psf = fwd.model()
-            return fwd.obs.sample(key, psf), fwd.obs.expected(psf)
-
-        photo, expected = draw(forward, jax.random.key(spec.seed))
+        photo, expected = _draw()(forward, jax.random.key(spec.seed))
         photo = np.asarray(photo, dtype=np.float64)
         expected = np.asarray(expected, dtype=np.float64)
         variance = np.asarray(forward.obs.variance(expected))
@@ -131,6 +139,8 @@ def synthesize(spec: SynthSpec) -> tuple[np.ndarray, dict[str, Any]]:
             "peak_expected_counts": float(expected.max()),
         },
     }
+    if spec.drawn:
+        truth["drawn"] = dict(spec.drawn)
     return photo, truth
 
 

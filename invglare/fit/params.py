@@ -312,6 +312,28 @@ class ParameterSpace:
     def is_nuisance(self) -> tuple[bool, ...]:
         return (False,) * len(self.parameters) + (True,) * len(self.nuisance)
 
+    def structure(self) -> ParameterSpace:
+        """This space with every `init` replaced by one fixed value inside its bounds.
+
+        The latent ⇄ physical maps and the priors do not read `init`; a residual function
+        holds this copy as its static part, so fits of photos whose starting guesses differ
+        (flux, background, centre from each photo) share their compiled programs.
+        """
+
+        def fixed(p: Parameter) -> Parameter:
+            lo, hi = p.lower, p.upper
+            if math.isfinite(lo) and math.isfinite(hi):
+                init = 0.5 * (lo + hi)
+            elif math.isfinite(lo):
+                init = lo + 1.0
+            elif math.isfinite(hi):
+                init = hi - 1.0
+            else:
+                init = 0.0
+            return dataclasses.replace(p, init=init)
+
+        return ParameterSpace(list(map(fixed, self.parameters)), list(map(fixed, self.nuisance)))
+
     def check(self, model: Any) -> None:
         """Raise :class:`~invglare.errors.ConfigError` unless every path exists in `model`
         and no two name the same value (an older and a newer spelling of one path)."""

@@ -327,10 +327,26 @@ def _batched(f, y, i, run, cfg):
     return jax.vmap(lambda yy, ii: _solve_one(f, yy, ii, run, cfg))(y, i)
 
 
+def _batched_photos(f, y, i, run, cfg):
+    # `f`, `y` and `run` carry a leading photo axis (arrays only); the start indices do not.
+    one = lambda ff, yy, rr: _batched(ff, yy, i, rr, cfg)  # noqa: E731
+    return eqx.filter_vmap(one, in_axes=(eqx.if_array(0), 0, 0))(f, y, run)
+
+
+def _single_photos(f, y, i, run, cfg):
+    one = lambda ff, yy, rr: _solve_one(ff, yy, i, rr, cfg)  # noqa: E731
+    return eqx.filter_vmap(one, in_axes=(eqx.if_array(0), 0, 0))(f, y, run)
+
+
 # `fn` is an argument, not a closure, so its arrays (target, fixed leaves) are inputs
-# of the compiled program rather than baked-in constants.
-_batched_jit = eqx.filter_jit(_batched)
-_single_jit = eqx.filter_jit(_solve_one)
+# of the compiled program rather than baked-in constants. Keyed by batch mode; a "*"
+# marks the modes that solve several photos at once (:func:`fit_many`).
+_JITTED = {
+    "vmap": eqx.filter_jit(_batched),
+    "loop": eqx.filter_jit(_solve_one),
+    "vmap*": eqx.filter_jit(_batched_photos),
+    "loop*": eqx.filter_jit(_single_photos),
+}
 
 
 def _compile(fn, y0, starts, run, cfg, batch) -> tuple[Any, float]:
@@ -346,8 +362,7 @@ def _compile(fn, y0, starts, run, cfg, batch) -> tuple[Any, float]:
         _COMPILED.move_to_end(key)
         return hit, 0.0
     t0 = time.perf_counter()
-    jitted = _batched_jit if batch == "vmap" else _single_jit
-    compiled = jitted.lower(fn, y0, starts, run, cfg).compile()
+    compiled = _JITTED[batch].lower(fn, y0, starts, run, cfg).compile()
     elapsed = time.perf_counter() - t0
     if key is not None:
         _COMPILED[key] = compiled
@@ -391,6 +406,83 @@ def _run_stage(
     finally:
         _SINKS.pop(run_id, None)
     return values, losses, codes, steps, t_compile, t2 - t1
+
+
+def _run_stage_many(
+    fns: Sequence[ResidualFn],
+    y0s: Sequence[Float[Array, "n p"]],
+    cfg: _Config,
+    batch: str,
+    sinks: Sequence[Callable | None],
+) -> list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, float, float]]:
+    """:func:`_run_stage` for several photos in one compiled call (vmapped over photos).
+
+    Each photo's outputs come back as :func:`_run_stage` returns them; the compile and
+    solve seconds, shared, are split evenly between the photos.
+    """
+    k = len(fns)
+    fn = stack_modules(fns)
+    y0 = jnp.stack([jnp.asarray(y) for y in y0s])
+    starts = jnp.arange(y0.shape[1], dtype=jnp.int32)
+    run_ids = [next(_NEXT_RUN) for _ in range(k)]
+    runs = jnp.asarray(run_ids, dtype=jnp.int32)
+    for run_id, sink in zip(run_ids, sinks, strict=True):
+        if sink is not None:
+            _SINKS[run_id] = sink
+    try:
+        if batch == "vmap":
+            compiled, t_compile = _compile(fn, y0, starts, runs, cfg, "vmap*")
+            t1 = time.perf_counter()
+            out = jax.block_until_ready(compiled(fn, y0, starts, runs, cfg))
+            values, losses, codes, steps = (np.asarray(o) for o in out)
+        else:
+            compiled, t_compile = _compile(fn, y0[:, 0], starts[0], runs, cfg, "loop*")
+            t1 = time.perf_counter()
+            outs = [
+                jax.block_until_ready(compiled(fn, y0[:, j], starts[j], runs, cfg))
+                for j in range(y0.shape[1])
+            ]
+            values, losses, codes, steps = (
+                np.stack([np.asarray(o[m]) for o in outs], axis=1) for m in range(4)
+            )
+        jax.effects_barrier()
+        t2 = time.perf_counter()
+    finally:
+        for run_id in run_ids:
+            _SINKS.pop(run_id, None)
+    t_c, t_s = t_compile / k, (t2 - t1) / k
+    return [(values[j], losses[j], codes[j], steps[j], t_c, t_s) for j in range(k)]
+
+
+def stack_modules(modules: Sequence[Any]) -> Any:
+    """Pytrees of one structure as one, their arrays stacked along a new leading axis.
+
+    **Raises:** :class:`~invglare.errors.ConfigError` when their static parts (shapes,
+    static fields, non-array leaves) differ: such photos cannot share a compiled solve.
+    """
+    parts = [eqx.partition(m, eqx.is_array) for m in modules]
+    leaves0, def0 = jax.tree_util.tree_flatten(parts[0][1])
+    dyn_def = jax.tree_util.tree_structure(parts[0][0])
+    shapes0 = [(x.shape, x.dtype) for x in jax.tree_util.tree_leaves(parts[0][0])]
+    for i, (dyn, static) in enumerate(parts[1:], start=1):
+        leaves, treedef = jax.tree_util.tree_flatten(static)
+        shapes = [(x.shape, x.dtype) for x in jax.tree_util.tree_leaves(dyn)]
+        same = treedef == def0 and jax.tree_util.tree_structure(dyn) == dyn_def
+        same = same and shapes == shapes0 and _equal_leaves(leaves, leaves0)
+        if not same:
+            raise ConfigError(
+                f"photo {i} of a vmapped group differs in structure from photo 0 (size, "
+                "settings or static model fields): such photos are fitted apart"
+            )
+    stacked = jax.tree_util.tree_map(lambda *xs: jnp.stack(xs), *(p[0] for p in parts))
+    return eqx.combine(stacked, parts[0][1])
+
+
+def _equal_leaves(a: list, b: list) -> bool:
+    try:
+        return len(a) == len(b) and all(bool(x == y) for x, y in zip(a, b, strict=True))
+    except (TypeError, ValueError):
+        return False
 
 
 @eqx.filter_jit
@@ -560,192 +652,334 @@ def fit(
     print(res.summary())
     ```
     """
-    if solver not in SOLVERS:
-        raise ConfigError(f"solver {solver!r} is not one of {', '.join(SOLVERS)}")
-    if batch not in BATCH_MODES:
-        raise ConfigError(f"batch {batch!r} is not one of {', '.join(BATCH_MODES)}")
-    factors = tuple(coarse_to_fine)
-    if (
-        not factors
-        or any(not isinstance(f, int | np.integer) or f < 1 for f in factors)
-        or factors[-1] != 1
+    run = _FitRun(
+        space, forward_template, target, views, solver=solver, n_starts=n_starts, key=key,
+        starts=starts, max_steps=max_steps, rtol=rtol, atol=atol, coarse_to_fine=coarse_to_fine,
+        refine_top=refine_top, view_options=view_options, covariance_scale=covariance_scale,
+        truth=truth, batch=batch, progress=progress, record_history=record_history,
+        diagnostics=diagnostics, final_likelihood=final_likelihood,
+    )  # fmt: skip
+    for s in range(run.n_stages):
+        fn, y0s, sink = run.stage_inputs(s)
+        run.stage_done(s, *_run_stage(fn, y0s, run.cfg, batch, sink))
+    return run.result()
+
+
+def fit_many(
+    spaces: Sequence[ParameterSpace],
+    forward_templates: Sequence[Forward],
+    targets: Sequence[Float[ArrayLike, "h w"]],
+    views: Mapping[str, float] | None = None,
+    *,
+    starts: Sequence[Any],
+    truths: Sequence[Mapping[str, float] | None] | None = None,
+    progress: Sequence[Callable[[FitProgress], None] | None] | None = None,
+    view_options: Mapping[str, Mapping[str, Any]]
+    | Sequence[Mapping[str, Mapping[str, Any]] | None]
+    | None = None,
+    batch: str = "vmap",
+    **settings: Any,
+) -> list[FitResult]:
+    """Fit several photos of one structure with one compiled solve per stage (`jax.vmap`).
+
+    The photos share their parameter paths and bounds, views and settings, and their
+    residual functions their static structure (photos of one size fitted with one config
+    do); each keeps its own starts, guesses and truth. Each result is what :func:`fit`
+    returns for that photo alone, up to the rounding of a batched computation: under
+    `vmap` every photo stops on its own criterion, while the batched loop runs until the
+    slowest photo is done.
+
+    **Arguments:** one entry per photo in `spaces`, `forward_templates`, `targets`,
+    `starts` (physical, ``(n, p)``; the same `n` for every photo), `truths` and
+    `progress`; `view_options` one mapping shared by all or one per photo (a statistics
+    view's measured scatter between eyes differs by photo); `views`, `batch` and `settings`
+    (the other keyword arguments of :func:`fit`) are shared.
+
+    **Returns:** one :class:`~invglare.fit.FitResult` per photo, in order.
+
+    **Raises:** :class:`~invglare.errors.ConfigError` for lists of different lengths, no
+    photo, or photos whose residual functions differ in structure.
+
+    **Example:** ``fit_many([space] * 2, [fwd_a, fwd_b], [photo_a, photo_b], starts=[s, s])``.
+    """
+    k = len(targets)
+    truths = [None] * k if truths is None else list(truths)
+    progress = [None] * k if progress is None else list(progress)
+    if view_options is None or isinstance(view_options, Mapping):
+        view_options = [view_options] * k
+    options = list(view_options)
+    lengths = {
+        len(spaces), len(forward_templates), len(starts), len(truths), len(progress), len(options)
+    }  # fmt: skip
+    if k == 0 or lengths != {k}:
+        raise ConfigError(
+            "fit_many needs one space, forward template, target, set of starts, truth, "
+            "progress and view options per photo, at least one; got "
+            f"{len(spaces)}, {len(forward_templates)}, {k}, {len(starts)}, {len(truths)}, "
+            f"{len(progress)}, {len(options)}"
+        )
+    runs = [
+        _FitRun(sp, fw, tg, views, starts=st, n_starts=np.shape(st)[0], truth=tr, progress=pr,
+                view_options=vo, batch=batch, **settings)
+        for sp, fw, tg, st, tr, pr, vo in zip(spaces, forward_templates, targets, starts,
+                                              truths, progress, options, strict=True)
+    ]  # fmt: skip
+    for s in range(runs[0].n_stages):
+        inputs = [run.stage_inputs(s) for run in runs]
+        outs = _run_stage_many(
+            [i[0] for i in inputs], [i[1] for i in inputs], runs[0].cfg, batch,
+            [i[2] for i in inputs],
+        )  # fmt: skip
+        for run, out in zip(runs, outs, strict=True):
+            run.stage_done(s, *out)
+    return [run.result() for run in runs]
+
+
+class _FitRun:
+    """One photo's fit, stage by stage (coarse to fine): :func:`fit` and :func:`fit_many`
+    run the solves, one photo at a time or several in one call, and this keeps the books."""
+
+    def __init__(
+        self,
+        space: ParameterSpace,
+        forward_template: Forward,
+        target: Float[ArrayLike, "h w"],
+        views: Mapping[str, float] | None,
+        *,
+        solver: str = "lm",
+        n_starts: int = 3,
+        key: PRNGKeyArray | None = None,
+        starts: Any = None,
+        max_steps: int = 256,
+        rtol: float = 1e-6,
+        atol: float = 1e-8,
+        coarse_to_fine: Sequence[int] = (1,),
+        refine_top: int = 1,
+        view_options: Mapping[str, Mapping[str, Any]] | None = None,
+        covariance_scale: str | float = "auto",
+        truth: Mapping[str, float] | None = None,
+        batch: str = "vmap",
+        progress: Callable[[FitProgress], None] | None = None,
+        record_history: bool = True,
+        diagnostics: bool = True,
+        final_likelihood: bool = True,
     ):
-        raise ConfigError(
-            f"coarse_to_fine must be integers >= 1 ending with 1, e.g. (4, 1); got {factors!r}"
-        )
-    if int(refine_top) != refine_top or refine_top < 1:
-        raise ConfigError(f"refine_top must be an integer >= 1, got {refine_top!r}")
-    if int(max_steps) != max_steps or max_steps < 1:
-        raise ConfigError(f"max_steps must be an integer >= 1, got {max_steps!r}")
-    if not (rtol >= 0 and atol >= 0 and rtol + atol > 0):
-        raise ConfigError(f"rtol and atol must be >= 0 and not both 0, got {rtol!r}, {atol!r}")
-    if isinstance(covariance_scale, str) and covariance_scale not in COVARIANCE_SCALES:
-        raise ConfigError(
-            f"covariance_scale {covariance_scale!r} is not one of "
-            f"{', '.join(COVARIANCE_SCALES)} or a number"
-        )
-    views = {"pixels": 1.0} if views is None else views
-    if truth is not None:
-        unknown = [p for p in truth if p not in space.paths]
-        if unknown:
-            raise ConfigError(f"truth names {unknown} which are not free parameters")
-
-    t_start = time.perf_counter()
-    fn_full = make_residual_fn(space, forward_template, target, views, view_options=view_options)
-    first_pass = fn_full.stabilised_views() if final_likelihood else ()
-    fn_final = fn_full.with_likelihood() if first_pass else fn_full
-    if final_likelihood and _has_likelihood(fn_final):
-        noise = [p for p in space.paths if p in NOISE_PATHS]
-        if noise:
+        if solver not in SOLVERS:
+            raise ConfigError(f"solver {solver!r} is not one of {', '.join(SOLVERS)}")
+        if batch not in BATCH_MODES:
+            raise ConfigError(f"batch {batch!r} is not one of {', '.join(BATCH_MODES)}")
+        factors = tuple(coarse_to_fine)
+        if (
+            not factors
+            or any(not isinstance(f, int | np.integer) or f < 1 for f in factors)
+            or factors[-1] != 1
+        ):
             raise ConfigError(
-                f"{', '.join(noise)} cannot be fitted by the pixel likelihood's least squares "
-                "(its deviance residuals' constant depends on them): measure gain and read "
-                "noise from flat and dark frames and fix them, or sample them with `invglare "
-                "sample`, whose posterior is the likelihood itself"
+                "coarse_to_fine must be integers >= 1 ending with 1, e.g. (4, 1); got "
+                f"{factors!r}"
             )
-    y0s = _latent_starts(space, starts, n_starts, key)
-    first_starts = [space.as_dict(v) for v in np.asarray(space.from_latent(y0s))]
+        if int(refine_top) != refine_top or refine_top < 1:
+            raise ConfigError(f"refine_top must be an integer >= 1, got {refine_top!r}")
+        if int(max_steps) != max_steps or max_steps < 1:
+            raise ConfigError(f"max_steps must be an integer >= 1, got {max_steps!r}")
+        if not (rtol >= 0 and atol >= 0 and rtol + atol > 0):
+            raise ConfigError(
+                f"rtol and atol must be >= 0 and not both 0, got {rtol!r}, {atol!r}"
+            )
+        if isinstance(covariance_scale, str) and covariance_scale not in COVARIANCE_SCALES:
+            raise ConfigError(
+                f"covariance_scale {covariance_scale!r} is not one of "
+                f"{', '.join(COVARIANCE_SCALES)} or a number"
+            )
+        views = {"pixels": 1.0} if views is None else views
+        if truth is not None:
+            unknown = [p for p in truth if p not in space.paths]
+            if unknown:
+                raise ConfigError(f"truth names {unknown} which are not free parameters")
 
-    # (factor, residuals) of each stage; a first pass in a stabilised domain ends on the
-    # likelihood, from the best result, at full resolution.
-    plan = [(int(f), fn_full if f == 1 else fn_full.with_factor(int(f))) for f in factors]
-    if first_pass:
-        plan.append((1, fn_final))
-    stages: list[dict[str, Any]] = []
-    compile_s = solve_s = 0.0
-    stage_y0 = y0s
-    origin = np.arange(y0s.shape[0])  # first-stage start each current start descends from
-    steps_so_far = np.zeros(y0s.shape[0], dtype=int)
-    for s, (factor, fn) in enumerate(plan):
-        history = _History(s, len(plan), factor, stage_y0.shape[0], progress)
-        cfg = _Config(solver, float(rtol), float(atol), int(max_steps), bool(record_history))
-        sink = history if record_history else None
-        values, losses, codes, steps, t_c, t_s = _run_stage(fn, stage_y0, cfg, batch, sink)
-        compile_s += t_c
-        solve_s += t_s
+        self.t_start = time.perf_counter()
+        self.space, self.views, self.truth = space, views, truth
+        self.refine_top = int(refine_top)
+        self.covariance_scale, self.diagnostics = covariance_scale, diagnostics
+        self.progress, self.record_history = progress, bool(record_history)
+        self.solver = solver
+        self.cfg = _Config(solver, float(rtol), float(atol), int(max_steps), bool(record_history))
+        self.fn_full = fn_full = make_residual_fn(
+            space, forward_template, target, views, view_options=view_options
+        )
+        self.first_pass = fn_full.stabilised_views() if final_likelihood else ()
+        self.fn_final = fn_final = fn_full.with_likelihood() if self.first_pass else fn_full
+        if final_likelihood and _has_likelihood(fn_final):
+            noise = [p for p in space.paths if p in NOISE_PATHS]
+            if noise:
+                raise ConfigError(
+                    f"{', '.join(noise)} cannot be fitted by the pixel likelihood's least "
+                    "squares (its deviance residuals' constant depends on them): measure gain "
+                    "and read noise from flat and dark frames and fix them, or sample them "
+                    "with `invglare sample`, whose posterior is the likelihood itself"
+                )
+        # (factor, residuals) of each stage; a first pass in a stabilised domain ends on the
+        # likelihood, from the best result, at full resolution.
+        self.plan = [(int(f), fn_full if f == 1 else fn_full.with_factor(int(f))) for f in factors]
+        if self.first_pass:
+            self.plan.append((1, fn_final))
+        y0s = _latent_starts(space, starts, n_starts, key)
+        self.first_starts = [space.as_dict(v) for v in np.asarray(space.from_latent(y0s))]
+        self.stages: list[dict[str, Any]] = []
+        self.compile_s = self.solve_s = 0.0
+        self.stage_y0 = y0s
+        self.origin = np.arange(y0s.shape[0])  # first-stage start each start descends from
+        self.steps_so_far = np.zeros(y0s.shape[0], dtype=int)
+        self.history: _History | None = None
+
+    @property
+    def n_stages(self) -> int:
+        return len(self.plan)
+
+    def stage_inputs(self, s: int) -> tuple[ResidualFn, Array, Callable | None]:
+        """Stage `s`'s residual function, latent starts and step-loss receiver."""
+        factor, fn = self.plan[s]
+        self.history = _History(s, len(self.plan), factor, self.stage_y0.shape[0], self.progress)
+        return fn, self.stage_y0, self.history if self.record_history else None
+
+    def stage_done(self, s, values, losses, codes, steps, t_c, t_s) -> None:
+        """Book stage `s`'s solves; pick the starts of the next stage."""
+        history = self.history
+        self.compile_s += t_c
+        self.solve_s += t_s
         losses = np.where(np.isfinite(losses), losses, np.inf)
         statuses = [
-            _status_message(int(c), int(n), float(lo), cfg)
+            _status_message(int(c), int(n), float(lo), self.cfg)
             for c, n, lo in zip(codes, steps, losses, strict=True)
         ]
         order = np.argsort(losses, kind="stable")
+        factor, fn = self.plan[s]
         record = {
             "factor": factor,
-            "origin": [int(o) for o in origin],
+            "origin": [int(o) for o in self.origin],
             "n_steps": [int(n) for n in steps],
             "final_loss": [float(v) for v in losses],
             "converged": [c for c, _ in statuses],
             "messages": [m for _, m in statuses],
             "loss_history": [
-                history.history(i, losses[i]) if record_history else [float(losses[i])]
-                for i in range(stage_y0.shape[0])
+                history.history(i, losses[i]) if self.record_history else [float(losses[i])]
+                for i in range(self.stage_y0.shape[0])
             ],
             "best": int(order[0]),
             "compile_s": t_c,
             "solve_s": t_s,
         }
-        if first_pass:
-            record["likelihood"] = fn is fn_final
-        stages.append(record)
-        steps_so_far = steps_so_far + steps.astype(int)
-        if s + 1 < len(plan):
+        if self.first_pass:
+            record["likelihood"] = fn is self.fn_final
+        self.stages.append(record)
+        self.steps_so_far = self.steps_so_far + steps.astype(int)
+        self.last = (values, order, statuses)
+        if s + 1 < len(self.plan):
             # The next, finer stage starts from the best few of this one; the likelihood's
             # refinement after a first pass from the best one.
-            top = 1 if plan[s + 1][1] is fn_final and first_pass else int(refine_top)
+            final_next = self.first_pass and self.plan[s + 1][1] is self.fn_final
+            top = 1 if final_next else self.refine_top
             keep = order[: max(1, min(top, len(order)))]
-            stage_y0 = jnp.asarray(values[keep])
-            origin, steps_so_far = origin[keep], steps_so_far[keep]
-    k = int(order[0])
-    best_latent = jnp.asarray(values[k])
-    best_start = int(origin[k])
-    n_steps_total = int(steps_so_far[k])
-    converged, message = statuses[k]
+            self.stage_y0 = jnp.asarray(values[keep])
+            self.origin, self.steps_so_far = self.origin[keep], self.steps_so_far[keep]
 
-    values = space.as_dict(space.from_latent(best_latent))
-    objective = fn_final.objective()
-    if first_pass:
-        domains = sorted({v.domain for v in fn_full.views if isinstance(v, PixelView)} - {
-            "likelihood", "log"})  # fmt: skip
-        objective += f", refined from a first pass in the {'/'.join(domains)} domain"
-    p = space.size
-    flags: list[dict[str, Any]] = []
-    optimum = None
-    if diagnostics:
-        cov, stderr, loss, n_res, s2, note = _covariance(
-            fn_final, best_latent, space, covariance_scale
+    def result(self) -> FitResult:
+        """The result after the last stage: the best start, its covariance, images and flags."""
+        values, order, statuses = self.last
+        space, fn_full, fn_final, stages = self.space, self.fn_full, self.fn_final, self.stages
+        truth = self.truth
+        k = int(order[0])
+        best_latent = jnp.asarray(values[k])
+        best_start = int(self.origin[k])
+        n_steps_total = int(self.steps_so_far[k])
+        converged, message = statuses[k]
+
+        values = space.as_dict(space.from_latent(best_latent))
+        objective = fn_final.objective()
+        if self.first_pass:
+            domains = sorted({v.domain for v in fn_full.views if isinstance(v, PixelView)} - {
+                "likelihood", "log"})  # fmt: skip
+            objective += f", refined from a first pass in the {'/'.join(domains)} domain"
+        p = space.size
+        flags: list[dict[str, Any]] = []
+        optimum = None
+        if self.diagnostics:
+            cov, stderr, loss, n_res, s2, note = _covariance(
+                fn_final, best_latent, space, self.covariance_scale
+            )
+            expected, predicted, variance, _ = (
+                np.asarray(a) for a in _predict(fn_final, best_latent)
+            )  # fmt: skip
+            target_arr = np.asarray(fn_final.target)
+            sigma = np.sqrt(variance + 1e-30)
+            saturated = np.asarray(fn_final.saturated)
+            residual_map = np.where(saturated, 0.0, (target_arr - expected) / sigma)
+            optimum = _check_optimum(fn_final, best_latent, space)
+            reduced = loss / (n_res - p) if n_res > p else math.nan
+            obs = fn_final.forward.obs
+            flags = fit_flags(
+                paths=list(space.paths),
+                values=values,
+                stderr={path: float(e) for path, e in zip(space.paths, stderr, strict=True)},
+                bounds={q.path: (q.lower, q.upper, q.init) for q in space.all},
+                truth=truth,
+                reduced_chi2=reduced,
+                dof=n_res - p,
+                normalised=_noise_normalised(fn_final),
+                optimum=optimum,
+                likelihood_pure=fn_final.pure_likelihood,
+                residual_map=residual_map,
+                expected=expected,
+                used=~saturated,
+                gain=float(obs.gain),
+                read_noise=float(obs.read_noise),
+            )
+        else:
+            cov, stderr = np.full((p, p), np.nan), np.full(p, np.nan)
+            loss = float(stages[-1]["final_loss"][k])
+            shape = tuple(fn_final.target.shape)
+            n_res, s2, note = sum(v.size(shape) for v in fn_final.views), math.nan, ""
+            residual_map = predicted = None
+        n_starts_run = len(stages[0]["n_steps"])
+        n_plan = len(self.plan)
+        where = f"stage {n_plan}/{n_plan} at full resolution" if n_plan > 1 else ""
+        summary = (
+            f"{message} ({'best of ' + str(n_starts_run) + ' starts: start ' + str(best_start)}"
+            f"{'; ' + where if where else ''}){note}"
         )
-        expected, predicted, variance, _ = (
-            np.asarray(a) for a in _predict(fn_final, best_latent)
-        )  # fmt: skip
-        target_arr = np.asarray(fn_final.target)
-        sigma = np.sqrt(variance + 1e-30)
-        saturated = np.asarray(fn_final.saturated)
-        residual_map = np.where(saturated, 0.0, (target_arr - expected) / sigma)
-        optimum = _check_optimum(fn_final, best_latent, space)
         reduced = loss / (n_res - p) if n_res > p else math.nan
-        obs = fn_final.forward.obs
-        flags = fit_flags(
+        if flags:
+            summary += f"; {len(flags)} flag{'s' if len(flags) > 1 else ''}: {flags[0]['message']}"
+        return FitResult(
             paths=list(space.paths),
             values=values,
             stderr={path: float(e) for path, e in zip(space.paths, stderr, strict=True)},
-            bounds={q.path: (q.lower, q.upper, q.init) for q in space.all},
-            truth=truth,
+            covariance=cov,
+            nuisance=[pp.path for pp in space.nuisance],
+            truth={k: float(v) for k, v in truth.items()} if truth else None,
+            loss=loss,
             reduced_chi2=reduced,
-            dof=n_res - p,
-            normalised=_noise_normalised(fn_final),
-            optimum=optimum,
-            likelihood_pure=fn_final.pure_likelihood,
+            n_residuals=n_res,
+            covariance_scale=s2,
+            converged=bool(converged),
+            message=summary,
+            n_steps=n_steps_total,
+            best_start=best_start,
+            timing_s={
+                "compile": self.compile_s,
+                "solve": self.solve_s,
+                "total": time.perf_counter() - self.t_start,
+            },
+            solver=self.solver,
+            views={k: float(v) for k, v in self.views.items()},
+            stages=stages,
+            starts=self.first_starts,
             residual_map=residual_map,
-            expected=expected,
-            used=~saturated,
-            gain=float(obs.gain),
-            read_noise=float(obs.read_noise),
+            model_image=predicted,
+            objective=objective,
+            flags=flags,
+            optimum_check=None if optimum is None else _plain_check(optimum),
         )
-    else:
-        cov, stderr = np.full((p, p), np.nan), np.full(p, np.nan)
-        loss = float(stages[-1]["final_loss"][k])
-        shape = tuple(fn_final.target.shape)
-        n_res, s2, note = sum(v.size(shape) for v in fn_final.views), math.nan, ""
-        residual_map = predicted = None
-    n_starts_run = len(stages[0]["n_steps"])
-    where = f"stage {len(plan)}/{len(plan)} at full resolution" if len(plan) > 1 else ""
-    summary = (
-        f"{message} ({'best of ' + str(n_starts_run) + ' starts: start ' + str(best_start)}"
-        f"{'; ' + where if where else ''}){note}"
-    )
-    reduced = loss / (n_res - p) if n_res > p else math.nan
-    if flags:
-        summary += f"; {len(flags)} flag{'s' if len(flags) > 1 else ''}: {flags[0]['message']}"
-    return FitResult(
-        paths=list(space.paths),
-        values=values,
-        stderr={path: float(e) for path, e in zip(space.paths, stderr, strict=True)},
-        covariance=cov,
-        nuisance=[pp.path for pp in space.nuisance],
-        truth={k: float(v) for k, v in truth.items()} if truth else None,
-        loss=loss,
-        reduced_chi2=reduced,
-        n_residuals=n_res,
-        covariance_scale=s2,
-        converged=bool(converged),
-        message=summary,
-        n_steps=n_steps_total,
-        best_start=best_start,
-        timing_s={
-            "compile": compile_s,
-            "solve": solve_s,
-            "total": time.perf_counter() - t_start,
-        },
-        solver=solver,
-        views={k: float(v) for k, v in views.items()},
-        stages=stages,
-        starts=first_starts,
-        residual_map=residual_map,
-        model_image=predicted,
-        objective=objective,
-        flags=flags,
-        optimum_check=None if optimum is None else _plain_check(optimum),
-    )
 
 
 def _plain_check(optimum: dict) -> dict:

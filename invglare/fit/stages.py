@@ -48,7 +48,7 @@ from invglare.fit.draw_scatter import scatter_covariance, scatter_options
 from invglare.fit.observation import Forward
 from invglare.fit.params import ParameterSpace
 from invglare.fit.result import FitResult
-from invglare.fit.solve import FitProgress, fit
+from invglare.fit.solve import FitProgress, fit, fit_many
 from invglare.fit.views import ResidualFn, make_residual_fn
 
 
@@ -145,112 +145,210 @@ def fit_staged(
                         stages=[Stage({"radial": 1.0}, 40)])
     ```
     """
-    paths = space.paths
-    # Early stages only seed the next: no covariance or images (two compilations fewer), and
-    # a pixel view there may stay in a variance-stabilised domain.
-    early = {"coarse_to_fine": (1,), "diagnostics": False, "final_likelihood": False}
-    pre = [(st.views, {**early, "max_steps": st.max_steps}, st.fixed) for st in stages]
-    if resume is None:
-        plan = pre + ([(views, {}, ())] if final else [])
-        if not plan:
-            raise ConfigError("final=False needs stages to run; there are none")
-        starts = np.asarray(starts)
-        first = starts
-        record = None
-        if scan_points is not None:
-            first_views, _, first_fixed = plan[0]
-            starts, record = scan(
-                space, forward, target, first_views, scan_points,
-                n=starts.shape[0], fixed=first_fixed, view_options=view_options,
-                progress=scan_progress,
-            )  # fmt: skip
-            first = np.asarray(record["starts"])
-        origin = np.arange(starts.shape[0])  # first-stage start each start descends from
-        records: list[dict] = []
-        n_steps = 0
-        timing = {"compile": 0.0, "solve": 0.0, "total": 0.0}
-    else:
-        starts = np.asarray([[resume.values[p] for p in paths]])
-        origin = np.asarray([resume.best_start])
-        records, n_steps, timing = list(resume.stages), resume.n_steps, dict(resume.timing_s)
-        record = None
-        plan = [(views, {}, ())]
-    interest = {q.path for q in space.parameters}
-    for k, (stage_views, overrides, fixed) in enumerate(plan):
-        sub, template, free_starts, held = hold(space, forward, starts, fixed)
-        stage_options = _with_scatter(sub, template, target, stage_views, view_options, free_starts)
-        # With draws, the offsets are right where they were measured: rounds from the result.
-        for _ in range(DRAW_ROUNDS - 1 if _draws(stage_options) else 0):
-            round_result = fit(
-                sub, template, target, stage_views, starts=free_starts,
-                n_starts=free_starts.shape[0], progress=_numbered(progress, k, len(plan)),
-                **{**solver, **overrides, **early, "view_options": stage_options},
-            )  # fmt: skip
-            timing["compile"] += float(round_result.timing_s.get("compile", 0.0))
-            timing["solve"] += float(round_result.timing_s.get("solve", 0.0))
-            n_steps += round_result.n_steps
-            free_starts = np.asarray([[round_result.values[p] for p in sub.paths]])
-            origin = origin[[round_result.best_start]]
-            stage_options = _with_scatter(
-                sub, template, target, stage_views, view_options, free_starts
-            )
-        result = fit(
-            sub,
-            template,
-            target,
-            stage_views,
-            starts=free_starts,
-            n_starts=free_starts.shape[0],
-            progress=_numbered(progress, k, len(plan)),
-            **{
-                **solver,
-                **overrides,
-                "truth": _subset(truth, sub.paths),
-                "view_options": stage_options,
-            },
+    plan = _Plan(
+        space, forward, target, views, starts, stages=stages, scan_points=scan_points,
+        view_options=view_options, truth=truth, final=final, resume=resume,
+        progress=progress, scan_progress=scan_progress, stage_done=stage_done,
+    )  # fmt: skip
+    for j in range(len(plan.steps)):
+        sub, template, free_starts, kwargs = plan.step(j)
+        result = fit(sub, template, target, plan.views(j), starts=free_starts,
+                     n_starts=free_starts.shape[0], **{**solver, **kwargs})  # fmt: skip
+        plan.step_done(j, result)
+    return plan.result()
+
+
+def fit_staged_many(
+    photos: Sequence[Mapping[str, Any]],
+    *,
+    stages: Sequence[Stage] = (),
+    view_options: Mapping[str, Mapping[str, Any]] | None = None,
+    **solver: Any,
+) -> list[FitResult]:
+    """:func:`fit_staged` for several photos of one structure, each plan step one
+    vmapped solve over the photos (:func:`invglare.fit.solve.fit_many`).
+
+    **Arguments:**
+
+    - `photos`: one mapping per photo with the per-photo arguments of :func:`fit_staged`:
+      ``space``, ``forward``, ``target``, ``views``, ``starts`` and optionally
+      ``scan_points``, ``truth``, ``progress``, ``scan_progress``, ``stage_done``. Every
+      photo has the same paths, bounds, views and number of starts (one fit config).
+    - `stages`, `view_options`, `solver`: shared, as for :func:`fit_staged`.
+
+    **Returns:** one :class:`~invglare.fit.FitResult` per photo; each equals
+    :func:`fit_staged`'s for that photo up to the rounding of batched arithmetic (the
+    scan scores each photo's points apart).
+    """
+    plans = [
+        _Plan(
+            p["space"], p["forward"], p["target"], p["views"], p["starts"], stages=stages,
+            scan_points=p.get("scan_points"), view_options=view_options, truth=p.get("truth"),
+            progress=p.get("progress"), scan_progress=p.get("scan_progress"),
+            stage_done=p.get("stage_done"),
         )
-        result.values.update(held)
-        for key in timing:
-            timing[key] += float(result.timing_s.get(key, 0.0))
+        for p in photos
+    ]  # fmt: skip
+    own = ("truth", "progress", "view_options")  # per photo (measured scatter, say)
+    for j in range(len(plans[0].steps)):
+        steps = [plan.step(j) for plan in plans]
+        shared = {key: v for key, v in steps[0][3].items() if key not in own}
+        results = fit_many(
+            [s[0] for s in steps], [s[1] for s in steps], [p["target"] for p in photos],
+            plans[0].views(j), starts=[s[2] for s in steps],
+            truths=[s[3]["truth"] for s in steps], progress=[s[3]["progress"] for s in steps],
+            view_options=[s[3]["view_options"] for s in steps], **{**solver, **shared},
+        )  # fmt: skip
+        for plan, result in zip(plans, results, strict=True):
+            plan.step_done(j, result)
+    return [plan.result() for plan in plans]
+
+
+#: Early stages only seed the next: no covariance or images (two compilations fewer), and a
+#: pixel view there may stay in a variance-stabilised domain.
+_EARLY = {"coarse_to_fine": (1,), "diagnostics": False, "final_likelihood": False}
+
+
+class _Plan:
+    """One photo's staged fit, step by step: :func:`fit_staged` and :func:`fit_staged_many`
+    run each step's fit (for one photo, or several at once) and this keeps the books.
+
+    A step is a stage of the plan, or one of the :data:`DRAW_ROUNDS` - 1 rounds before a
+    stage whose views ask for draws (each measures the scatter between eyes at its start,
+    the previous round's result, and fits: the offsets are right where they were measured).
+    """
+
+    def __init__(
+        self, space, forward, target, views, starts, *, stages, scan_points, view_options,
+        truth, final=True, resume=None, progress=None, scan_progress=None, stage_done=None,
+    ):  # fmt: skip
+        self.space, self.forward, self.target, self.truth = space, forward, target, truth
+        self.view_options, self.progress, self.stage_done = view_options, progress, stage_done
+        self.resume = resume
+        pre = [(st.views, {**_EARLY, "max_steps": st.max_steps}, st.fixed) for st in stages]
+        self.record = None
+        if resume is None:
+            self.plan = pre + ([(views, {}, ())] if final else [])
+            if not self.plan:
+                raise ConfigError("final=False needs stages to run; there are none")
+            starts = np.asarray(starts)
+            self.first = starts
+            if scan_points is not None:
+                first_views, _, first_fixed = self.plan[0]
+                starts, self.record = scan(
+                    space, forward, target, first_views, scan_points,
+                    n=starts.shape[0], fixed=first_fixed, view_options=view_options,
+                    progress=scan_progress,
+                )  # fmt: skip
+                self.first = np.asarray(self.record["starts"])
+            # The first-stage start each start descends from.
+            self.origin = np.arange(starts.shape[0])
+            self.records: list[dict] = []
+            self.n_steps = 0
+            self.timing = {"compile": 0.0, "solve": 0.0, "total": 0.0}
+        else:
+            starts = np.asarray([[resume.values[p] for p in space.paths]])
+            self.origin = np.asarray([resume.best_start])
+            self.records = list(resume.stages)
+            self.n_steps, self.timing = resume.n_steps, dict(resume.timing_s)
+            self.plan = [(views, {}, ())]
+        self.starts = starts
+        self.interest = {q.path for q in space.parameters}
+        self.held: dict[str, float] = {}
+        self.last: FitResult | None = None
+        # (stage, whether a round before it) per step.
+        self.steps = [
+            (k, r + 1 < rounds)
+            for k, (v, _, _) in enumerate(self.plan)
+            for rounds in [DRAW_ROUNDS if _draws(_subset(view_options, v)) else 1]
+            for r in range(rounds)
+        ]
+        self.current: tuple | None = None  # the last step's space, template, views, options
+
+    def views(self, j: int) -> Mapping[str, float]:
+        """Step `j`'s views."""
+        return self.plan[self.steps[j][0]][0]
+
+    def step(self, j: int) -> tuple[ParameterSpace, Forward, np.ndarray, dict[str, Any]]:
+        """Step `j`: its space (held paths removed), template, starts and fit settings."""
+        k, is_round = self.steps[j]
+        stage_views, overrides, fixed = self.plan[k]
+        sub, template, free_starts, self.held = hold(self.space, self.forward, self.starts, fixed)
+        options = _with_scatter(
+            sub, template, self.target, stage_views, self.view_options, free_starts
+        )
+        self.current = (sub, template, stage_views, options)
+        kwargs = {
+            **overrides,
+            **(_EARLY if is_round else {}),
+            "truth": None if is_round else _subset(self.truth, sub.paths),
+            "view_options": options,
+            "progress": _numbered(self.progress, k, len(self.plan)),
+        }
+        return sub, template, free_starts, kwargs
+
+    def step_done(self, j: int, result: FitResult) -> None:
+        """Book step `j`'s result; the best of it starts the next step."""
+        k, is_round = self.steps[j]
+        stage_views = self.plan[k][0]
+        paths = self.space.paths
+        result.values.update(self.held)
+        if is_round:
+            # A round only seeds its stage: its steps and time count, not its records.
+            self.timing["compile"] += float(result.timing_s.get("compile", 0.0))
+            self.timing["solve"] += float(result.timing_s.get("solve", 0.0))
+            self.n_steps += result.n_steps
+            self.origin = self.origin[[result.best_start]]
+            self.starts = np.asarray([[result.values[p] for p in paths]])
+            return
+        for key in self.timing:
+            self.timing[key] += float(result.timing_s.get(key, 0.0))
         for entry in result.stages:
             entry = dict(entry, views=dict(stage_views))
-            entry["origin"] = [int(origin[i]) for i in entry["origin"]]
-            if not records and record is not None:
-                entry["scan"] = record
-            records.append(entry)
-        n_steps += result.n_steps
-        origin = origin[[result.best_start]]
-        if stage_done is not None and (len(plan) > 1 or resume is not None):
-            stage_done(
+            entry["origin"] = [int(self.origin[i]) for i in entry["origin"]]
+            if not self.records and self.record is not None:
+                entry["scan"] = self.record
+            self.records.append(entry)
+        self.n_steps += result.n_steps
+        self.origin = self.origin[[result.best_start]]
+        if self.stage_done is not None and (len(self.plan) > 1 or self.resume is not None):
+            self.stage_done(
                 StageDone(
-                    number=len(records),
+                    number=len(self.records),
                     views=dict(stage_views),
                     loss=result.loss,
-                    best_start=int(origin[0]),
-                    values={p: result.values[p] for p in paths if p in interest},
+                    best_start=int(self.origin[0]),
+                    values={p: result.values[p] for p in paths if p in self.interest},
                 )
             )
-        if k + 1 < len(plan):
-            starts = np.asarray([[result.values[p] for p in paths]])
-    if plan[-1][1] == {} and _draws(stage_options):
-        _scatter_errors(result, sub, template, target, stage_views, stage_options)
-    result.stages = records
-    if resume is None:
-        result.starts = [dict(zip(paths, map(float, row), strict=True)) for row in first]
-    else:
-        result.starts = resume.starts
-    result.best_start = int(origin[0])
-    if len(records) > 1:
-        # fit() described only its own stage; say where its start came from.
-        result.message = re.sub(
-            r"\(best of \d+ starts: start \d+\)",
-            f"(stage {len(records)} of {len(records)}; from the best of "
-            f"{len(result.starts)} starts, start {result.best_start})",
-            result.message,
-        )
-    result.n_steps = n_steps
-    result.timing_s = timing
-    return result
+        if k + 1 < len(self.plan):
+            self.starts = np.asarray([[result.values[p] for p in paths]])
+        self.last = result
+
+    def result(self) -> FitResult:
+        """The last step's result with every step's records, starts and totals."""
+        result, records = self.last, self.records
+        paths = self.space.paths
+        sub, template, views, options = self.current
+        if self.plan[-1][1] == {} and _draws(options):
+            _scatter_errors(result, sub, template, self.target, views, options)
+        result.stages = records
+        if self.resume is None:
+            result.starts = [dict(zip(paths, map(float, row), strict=True)) for row in self.first]
+        else:
+            result.starts = self.resume.starts
+        result.best_start = int(self.origin[0])
+        if len(records) > 1:
+            # fit() described only its own stage; say where its start came from.
+            result.message = re.sub(
+                r"\(best of \d+ starts: start \d+\)",
+                f"(stage {len(records)} of {len(records)}; from the best of "
+                f"{len(result.starts)} starts, start {result.best_start})",
+                result.message,
+            )
+        result.n_steps = self.n_steps
+        result.timing_s = self.timing
+        return result
 
 
 #: Rounds of a stage with draws: each measures the scatter between eyes at its start (the

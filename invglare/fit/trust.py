@@ -29,7 +29,7 @@ functions of the latent vector, so that it reuses the fit's compiled programs.
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
 from typing import Any
 
 import numpy as np
@@ -307,3 +307,16 @@ def fit_flags(
                 }
             )
     return flags
+
+
+#: Said by results written before flags existed when a converged fit's residuals were far
+#: above the noise; :func:`poor_fit` still reads it.
+LEGACY_POOR_FIT = "the model does not explain the photo"
+
+
+def poor_fit(flags: Sequence[Mapping[str, Any]], message: str = "") -> bool:
+    """Whether a fit's `flags` say the model does not explain the photo: a `reduced_chi2`
+    flag above 1 (residuals far above the noise), or, for a result written before flags
+    existed, its `message` saying so."""
+    above = any(f.get("kind") == "reduced_chi2" and f.get("value", 0.0) > 1.0 for f in flags)
+    return above or LEGACY_POOR_FIT in message

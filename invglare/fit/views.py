@@ -45,6 +45,7 @@ import numpy as np
 from jax.scipy.special import log_ndtr
 from jaxtyping import Array, ArrayLike, Bool, Float
 
+from invglare._core.checks import as_float, is_concrete
 from invglare.errors import ConfigError
 from invglare.fit.deviance import deviance_residuals, fisher_weight, pixel_log_likelihood_gradient
 from invglare.fit.lash_prior import layout_priors, prior_residuals
@@ -326,7 +327,7 @@ def pixel_residuals(
         var = jnp.maximum(e, 0.0) / gain + read**2
         r = (o - e) / jnp.sqrt(var + _TINY)
     else:
-        if floor is None or not floor > 0:
+        if floor is None or (is_concrete(floor) and not np.all(np.asarray(floor) > 0)):
             raise ConfigError(f"the log pixel domain needs a floor > 0 counts, got {floor!r}")
         r = jnp.log(jnp.maximum(o, 0.0) + floor) - jnp.log(jnp.maximum(e, 0.0) + floor)
     use = jnp.ones(o.shape, bool) if mask is None else jnp.asarray(mask, bool)
@@ -376,6 +377,10 @@ class AbstractView(eqx.Module):
         """Length of the residual vector for an image of `shape`."""
 
 
+def _optional_float(x: ArrayLike | None) -> Array | None:
+    return None if x is None else as_float(x)
+
+
 class PixelView(AbstractView):
     """Pixel-wise residuals (see :func:`pixel_residuals`); `factor` > 1 compares block sums.
 
@@ -388,7 +393,9 @@ class PixelView(AbstractView):
     """
 
     domain: str = eqx.field(static=True, default="likelihood")
-    floor: float | None = eqx.field(static=True, default=None)
+    # An array (a leaf), not static: its default comes from the photo's noise, and photos
+    # of one fit config then share one compiled solve.
+    floor: Float[Array, ""] | None = eqx.field(converter=_optional_float, default=None)
     censoring: str = eqx.field(static=True, default="survival")
     factor: int = eqx.field(static=True, default=1)
     #: The scoring form of the likelihood's residuals (see :func:`pixel_residuals`).
@@ -469,7 +476,7 @@ class RadialView(AbstractView):
 
     n_bins: int = eqx.field(static=True)
     max_radius_px: float = eqx.field(static=True)
-    floor: float = eqx.field(static=True)
+    floor: Float[Array, ""] = eqx.field(converter=as_float)  # a leaf, as PixelView's
     draws: int = eqx.field(static=True, default=0)
     model_draws: int = eqx.field(static=True, default=1)
     offset: Float[Array, " n"] | None = eqx.field(converter=_optional_array, default=None)
@@ -849,7 +856,8 @@ def make_residual_fn(
     if any(isinstance(v, PixelView) and v.likelihood for v in built):
         check_likelihood_photo(obs, tgt, obs.saturated_mask(tgt))
     return ResidualFn(
-        space=space,
+        # Without the photo's starting guesses: one compiled solve serves every photo.
+        space=space.structure(),
         forward=forward_template,
         target=target_arr,
         saturated=obs.saturated_mask(target_arr),

@@ -17,7 +17,7 @@ area of a lone disk, ellipse, polygon or capsule in closed form
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from typing import Any, ClassVar
 
 import numpy as np
@@ -25,7 +25,12 @@ from jaxtyping import Array, ArrayLike, Float
 
 from invglare.aperture import Aperture, shape_to_config
 from invglare.models.base import broadcast_image, check_no_state, light_angle, light_angles
-from invglare.models.raster import AbstractRasterModel, build_propagator, raster_header
+from invglare.models.raster import (
+    AbstractRasterModel,
+    build_propagator,
+    prepared_for,
+    raster_header,
+)
 from invglare.optics.propagator import AbstractPropagator
 from invglare.optics.spectral import Spectrum
 
@@ -57,6 +62,7 @@ class AperturePSF(AbstractRasterModel):
         window_mm: float | None = None,
         propagation: str = "fraunhofer",
         method: str = "auto",
+        method_options: Mapping[str, Any] | None = None,
         spectral: str = "exact",
         reference_wavelength_nm: float = 575.0,
         illuminant: str = "E",
@@ -74,7 +80,12 @@ class AperturePSF(AbstractRasterModel):
         - `aperture_npix`, `window_mm`: the aperture raster; the window defaults to
           the aperture's extent plus two pixels on each side.
         - `method`: ``"fft"``, ``"mft"`` or ``"auto"`` (FFT when the requested pixel
-          scale is one the FFT produces, else the exact matrix Fourier transform).
+          scale is one the FFT produces, else the exact matrix Fourier transform);
+          ``"quad"`` (the raster's quads in closed form: any sampling, no aliasing, the
+          near field without chirp sampling) or ``"polygon"`` (the shapes' exact
+          transforms, no raster); see :mod:`invglare.optics.quad`.
+        - `method_options`: the quad or polygon options (``[model.quad]`` /
+          ``[model.polygon]``).
         - `spectral`: ``"exact"`` (one transform per wavelength) or ``"scaled"``
           (copies of the `reference_wavelength_nm` PSF, Ritschel et al.).
         - `illuminant`, `colourspace`: colour-science names for the light's
@@ -106,7 +117,9 @@ class AperturePSF(AbstractRasterModel):
             window_mm=window_mm,
             propagation=propagation,
             method=method,
+            method_options=method_options,
         )
+        propagator = prepared_for(propagator, aperture, aperture.transmission(propagator.grid))
         return cls(aperture, propagator, spectrum)
 
     def transmission(self) -> Float[Array, "n n"]:
@@ -115,7 +128,8 @@ class AperturePSF(AbstractRasterModel):
 
     def psf(self) -> Float[Array, "npix npix"] | Float[Array, "npix npix 3"]:
         """The PSF: mono ``(npix, npix)`` for one wavelength, linear RGB ``(npix, npix, 3)``."""
-        field = self.transmission()
+        takes_shapes = self.propagator.takes == "shapes"
+        field = self.aperture if takes_shapes else self.transmission()
         area = self.aperture.open_area_mm2()
         return self.spectrum.integrate(lambda lam: self.propagator(field, lam, open_area_mm2=area))
 
@@ -158,14 +172,18 @@ class AperturePSF(AbstractRasterModel):
 
 
 def propagator_table(prop: AbstractPropagator) -> dict[str, Any]:
-    """The `[model]` keys of a propagator's choices."""
-    return {
+    """The `[model]` keys of a propagator's choices (and its method's own table)."""
+    table = {
         "focal_length_mm": float(prop.focal_length_mm),
         "propagation": prop.propagation,
         "aperture_npix": prop.grid.npix,
         "window_mm": float(prop.grid.width_mm),
         "method": prop.method,
     }
+    options = prop.options()
+    if options:
+        table[prop.method] = options
+    return table
 
 
 def output_and_spectrum_tables(prop: AbstractPropagator, spec: Spectrum) -> dict[str, Any]:

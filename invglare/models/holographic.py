@@ -53,6 +53,7 @@ from jaxtyping import Array, ArrayLike, Float, Key
 from invglare.aperture.eye import EyeAperture, eye_to_config
 from invglare.errors import ConfigError, InputDataError, PhysicsRangeError
 from invglare.models.base import AbstractGlareModel
+from invglare.optics.fourier import fft_size
 from invglare.optics.holographic.layers import (
     Spectacles,
     propagation_kernel,
@@ -100,19 +101,6 @@ DEFAULT_RGB_NM = (640.0, 550.0, 460.0)
 _MARGIN_PX = 2
 #: Width (px) of the smooth taper at the edge of a cropped stack's grid.
 TAPER_PX = 12
-
-
-def fast_even_size(n: int) -> int:
-    """The smallest even integer >= `n` with no prime factor above 5 (a fast FFT size)."""
-    m = max(2, n + (n % 2))
-    while True:
-        k = m
-        for p in (2, 3, 5):
-            while k % p == 0:
-                k //= p
-        if k == 1:
-            return m
-        m += 2
 
 
 def crop_taper(m: int, taper_px: int) -> np.ndarray:
@@ -394,7 +382,7 @@ class HolographicEye(AbstractGlareModel):
             # Cropped by default; not with spectacles, whose phase the crop reproduces only to
             # 5e-5-8e-4 of the PSF's peak (measured for -0.5 D at 15.6 mm; 3e-6 without).
             with_glasses = "spectacles" in layers and spectacles is not None
-            layer_npix = npix if with_glasses else min(npix, fast_even_size(least))
+            layer_npix = npix if with_glasses else min(npix, fft_size(least, even=True))
         layer_npix = _check_int("layer_npix", layer_npix, 8)
         if layer_npix > npix or (layer_npix < npix and layer_npix < least):
             raise PhysicsRangeError(
@@ -904,7 +892,7 @@ class HolographicEye(AbstractGlareModel):
         bigger = dataclasses.replace(self, eye=eye, max_pupil_mm=max(pupils))
         need_px = 2 * math.ceil(bigger._need_radius_mm(max(pupils)) / self.sampling.finest_pitch_mm)
         if self.layer_npix < self.npix and self.layer_npix < need_px + 2 * TAPER_PX:
-            least = min(self.npix, fast_even_size(need_px + 2 * TAPER_PX))
+            least = min(self.npix, fft_size(need_px + 2 * TAPER_PX, even=True))
             bigger = dataclasses.replace(bigger, layer_npix=least)
         bigger.check_sampling(max(pupils))
         return bigger

@@ -74,8 +74,9 @@ or a monochrome PSF for a single wavelength).
 
 from __future__ import annotations
 
+import dataclasses
 import math
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from typing import Any, ClassVar, Protocol, runtime_checkable
 
 import equinox as eqx
@@ -143,8 +144,6 @@ class ObstacleAperture(Protocol):
     def extent_mm(self) -> float:
         """Diameter (mm) of a disk about the axis holding the pupil (concrete)."""
         ...
-
-
 
 
 class KakimotoGlare(AbstractRasterModel):
@@ -216,6 +215,7 @@ class KakimotoGlare(AbstractRasterModel):
         max_light_angle_deg: float = 0.0,
         propagation: str = "fraunhofer",
         method: str = "auto",
+        method_options: Mapping[str, Any] | None = None,
         spectral: str = "exact",
         reference_wavelength_nm: float = 575.0,
         illuminant: str = "E",
@@ -245,9 +245,12 @@ class KakimotoGlare(AbstractRasterModel):
           ``t_o P`` stays inside the pupil for any shift and the intensity does not
           depend on where the field sits in the window. Enlarging the window would only
           coarsen the raster.
-        - `propagation`, `method`, `spectral`, `reference_wavelength_nm`, `illuminant`,
-          `colourspace`: as for :meth:`~invglare.models.aperture_psf.AperturePSF.build`
-          (`spectral` applies to ``colour="spectral"``).
+        - `propagation`, `method`, `method_options`, `spectral`, `reference_wavelength_nm`,
+          `illuminant`, `colourspace`: as for
+          :meth:`~invglare.models.aperture_psf.AperturePSF.build` (`spectral` applies to
+          ``colour="spectral"``). The obstacle image is a raster: ``method = "polygon"``
+          is refused, and ``"quad"`` needs ``masking = "fixed"`` (its quadtree is decided
+          on one raster; a position-dependent mask is another raster per light).
         - `wide_angle`: an eye's particles (cornea cells, lens and vitreous particles)
           diffract far beyond the raster's alias-free band ``lambda / (2 pitch)``. With
           ``"ensemble"`` (default) or ``"phases"`` an eye with particles may have a
@@ -275,6 +278,17 @@ class KakimotoGlare(AbstractRasterModel):
         """
         choose("colour", colour, COLOURS)
         choose("masking", masking, MASKINGS)
+        if method == "polygon":
+            raise ConfigError(
+                "method = 'polygon' transforms shapes, and the Kakimoto model's field is a "
+                "raster (an obstacle image times a pupil); use method = 'quad', 'fft' or 'mft'"
+            )
+        if method == "quad" and masking == "position":
+            raise ConfigError(
+                "method = 'quad' decides its quadtree on one raster, and masking = "
+                "'position' makes another raster for every light; use masking = 'fixed' "
+                "or method = 'fft' / 'mft'"
+            )
         choose("wide_angle", wide_angle, WIDE_ANGLE)
         check_range("obstacle_distance_mm", obstacle_distance_mm, 0.0, unit="mm")
         check_range("max_light_angle_deg", max_light_angle_deg, 0.0, unit="deg")
@@ -321,6 +335,7 @@ class KakimotoGlare(AbstractRasterModel):
             window_mm=window_mm,
             propagation=propagation,
             method=method,
+            method_options=method_options,
             beyond_band=wide_angle != "none" and bool(getattr(aperture, "particles", ())),
         )
         # Structures finer than the raster: gratings it aliases are refused, the rest warned.
@@ -337,7 +352,7 @@ class KakimotoGlare(AbstractRasterModel):
         fix_windows = getattr(aperture, "with_stamp_windows", None)
         if callable(fix_windows):
             aperture = fix_windows(propagator.grid)
-        return cls(
+        model = cls(
             aperture=aperture,
             propagator=propagator,
             spectrum=spectrum,
@@ -347,6 +362,8 @@ class KakimotoGlare(AbstractRasterModel):
             max_light_angle_deg=float(max_light_angle_deg),
             wide_angle=wide_angle,
         )
+        prepared = propagator.prepared(model.field())
+        return model if prepared is propagator else dataclasses.replace(model, propagator=prepared)
 
     # ----------------------------------------------------------------------------- fields
 

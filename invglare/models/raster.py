@@ -9,6 +9,8 @@ the sampling choices they all make the same way.
 # annotations as objects when the class is created.
 import abc
 import math
+from collections.abc import Mapping
+from typing import Any
 
 import equinox as eqx
 import jax.numpy as jnp
@@ -46,10 +48,13 @@ def build_propagator(
     window_mm: float | None,
     propagation: str,
     method: str,
+    method_options: Mapping[str, Any] | None = None,
     beyond_band: bool = False,
 ) -> AbstractPropagator:
     """A propagator whose window holds an aperture of `extent_mm` and suits the spectrum.
 
+    A quad or polygon propagator still has to be :meth:`~invglare.optics.propagator.
+    AbstractPropagator.prepared` for the model's aperture (see :func:`prepared_for`).
     `beyond_band`: see :func:`~invglare.optics.propagator.make_propagator`.
     """
     if isinstance(aperture_npix, bool) or not isinstance(aperture_npix, int) or aperture_npix < 8:
@@ -76,6 +81,8 @@ def build_propagator(
         aperture_npix=aperture_npix,
         propagation=propagation,
         method=method,
+        method_options=method_options,
+        wavelengths_nm=tuple(computed),
         longest_wavelength_nm=max(computed),
         beyond_band=beyond_band,
     )
@@ -94,6 +101,12 @@ def build_propagator(
             beyond_band=beyond_band,
         )
     return propagator
+
+
+def prepared_for(propagator: AbstractPropagator, aperture, raster) -> AbstractPropagator:
+    """The propagator prepared for a model's aperture: given the shapes when it takes them
+    (the polygon method), else the raster (the quad method decides its quadtree on it)."""
+    return propagator.prepared(aperture if propagator.takes == "shapes" else raster)
 
 
 def central_spot_radius_px(

@@ -753,6 +753,26 @@ class TemporalGlare(AbstractRasterModel):
         state, cfs = jax.lax.scan(body, state, (lum, head))
         return state, (cfs[:, 0] if not self.is_spectral else jnp.moveaxis(cfs, 1, -1))
 
+    def aperture_sequence(
+        self,
+        n_frames: int,
+        luminance_cd_m2: Float[ArrayLike, "*n"] | None = None,
+        state: DynamicsState | None = None,
+    ) -> tuple[DynamicsState, Float[Array, "n a a"]]:
+        """The apertures ``P t_o`` of `n_frames` consecutive frames, by one `lax.scan` (the
+        arguments of :meth:`psf_sequence`), for a renderer that transforms them itself: the
+        progressive quads of :mod:`invglare.models.quad_sequence`."""
+        check_n_frames(n_frames)
+        lum = self.field_luminance_cd_m2 if luminance_cd_m2 is None else as_float(luminance_cd_m2)
+        lum = jnp.broadcast_to(lum, (n_frames,))
+        state = self.init_state(lum[0]) if state is None else state
+        static = self.sequence_constants()
+
+        def body(s, frame_lum):
+            return self.advance(s, frame_lum), self._aperture(static, self.frame_values(s))
+
+        return jax.lax.scan(body, state, lum)
+
 
 def _check_effective_distance(grid, wavelength_nm: float, distance_mm: float) -> None:
     """Refuse an effective distance whose E the raster aliases, naming the raster it needs."""

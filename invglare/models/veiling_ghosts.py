@@ -39,8 +39,6 @@ the flux (:func:`invglare.models.veiling_series.profile_area`).
 
 from __future__ import annotations
 
-from typing import Any
-
 import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
@@ -339,14 +337,3 @@ class LensGhosts(eqx.Module):
         """Share of the light in the direct image: Fresnel losses times paraxial vignetting."""
         slope = jnp.tan(jnp.deg2rad(as_float(light_angle_deg)))
         return ghost_spots(self.lens, ((),), slope)[2][0]
-
-
-def ghost_source_kind(source: Any) -> str:
-    """``"ghosts"`` or ``"lens"``: which table a source is written as in a config."""
-    if isinstance(source, GhostSet):
-        return "ghosts"
-    if isinstance(source, LensGhosts):
-        return "lens"
-    raise ConfigError(
-        f"a veiling model's ghosts must be a GhostSet or LensGhosts, got {type(source).__name__}"
-    )

@@ -13,6 +13,31 @@ import jax.numpy as jnp
 from jaxtyping import Array, Complex, Float, Inexact
 
 
+def fft_size(n: int, *, even: bool = False) -> int:
+    """The smallest integer >= `n` (even, with `even`) whose only prime factors are 2, 3, 5.
+
+    Such sizes are fast for every FFT library JAX uses (pocketfft/ducc on CPU,
+    cuFFT on GPU), while costing at most a few percent more samples than `n`.
+
+    ```python
+    fft_size(1025)              # 1080
+    fft_size(243, even=True)    # 250
+    ```
+    """
+    if n < 1:
+        raise ValueError(f"FFT size must be >= 1, got {n}")
+    step = 2 if even else 1
+    m = max(2, n + n % 2) if even else n
+    while True:  # at most a few percent above n, so a plain search is cheap
+        k = m
+        for p in (2, 3, 5):
+            while k % p == 0:
+                k //= p
+        if k == 1:
+            return m
+        m += step
+
+
 def pad_centred(field: Inexact[Array, "n n"], m: int) -> Inexact[Array, "m m"]:
     """Zero-pad a square array to ``m`` x ``m`` keeping its centre pixel at ``m // 2``."""
     n = field.shape[-1]

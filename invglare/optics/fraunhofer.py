@@ -28,7 +28,7 @@ power made them 0.27 % too high.
 from __future__ import annotations
 
 import jax.numpy as jnp
-from jaxtyping import Array, ArrayLike, Complex, Float, Inexact
+from jaxtyping import Array, ArrayLike, Float, Inexact
 
 from invglare._core.grids import AngularGrid, ApertureGrid, nm_to_mm, rad_to_deg
 from invglare._core.xla import materialise
@@ -196,14 +196,3 @@ def _real_field_intensity(
     block = abs2(mft2_matrices(field, a_x[h:], a_x))
     turned = block[::-1, ::-1]
     return jnp.concatenate([turned[:h, :npix], block[: npix - h, :npix]], axis=0)
-
-
-def far_field_amplitude_mft(
-    field: Inexact[Array, "n n"],
-    grid: ApertureGrid,
-    wavelength_nm: ArrayLike,
-    output: AngularGrid,
-) -> Complex[Array, "out out"]:
-    """Complex far field ``U(theta) = pitch^2 * DFT`` (mm^2) at the output grid's angles."""
-    freqs = output.coords_rad() / nm_to_mm(wavelength_nm)
-    return mft2(field, grid.coords_mm(), freqs, freqs) * grid.pitch_mm**2

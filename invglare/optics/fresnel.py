@@ -180,6 +180,36 @@ def transfer_function(
     return jnp.where(f2 <= k2, propagating, evanescent)
 
 
+def angular_spectrum_kernel(
+    grid: ApertureGrid,
+    wavelength_nm: ArrayLike,
+    distance_mm: ArrayLike,
+    pad_npix: int | None = None,
+    kind: str = "exact",
+    band_limit: bool = True,
+) -> Complex[Array, "m m"]:
+    """The band-limited angular-spectrum transfer function between two planes, FFT order.
+
+    :func:`transfer_function` on the FFT frequencies of an `m`-sample grid of the same
+    pitch (`pad_npix`, default the grid itself, ``m = n``: a *periodic* propagation, exact
+    for a field that is periodic on the grid and otherwise correct where light does not
+    cross the window's edge on the way), with `band_limit` the frequencies whose phase the
+    grid undersamples removed (Matsushima & Shimobaba 2009): the cut is at
+    ``1 / (lambda sqrt((2 d / (m pitch))^2 + 1))`` per axis. Made once, it serves every
+    field propagated over the same distance (:func:`angular_spectrum`, the holographic
+    eye's iterations).
+    """
+    m = grid.npix if pad_npix is None else pad_npix
+    freqs = jnp.fft.fftfreq(m, d=grid.pitch_mm)
+    h = transfer_function(freqs, freqs, wavelength_nm, distance_mm, kind)
+    if band_limit:
+        span_mm = m * grid.pitch_mm
+        f_max = 1.0 / (nm_to_mm(wavelength_nm) * jnp.sqrt((2 * distance_mm / span_mm) ** 2 + 1))
+        passed = jnp.abs(freqs) <= f_max
+        h = h * (passed[:, None] & passed[None, :])
+    return h
+
+
 def angular_spectrum(
     field: Inexact[Array, "n n"],
     grid: ApertureGrid,
@@ -201,13 +231,7 @@ def angular_spectrum(
     n = field.shape[-1]
     m = 2 * n if pad_npix is None else pad_npix
     padded = pad_centred(field.astype(jnp.result_type(field.dtype, jnp.complex64)), m)
-    freqs = jnp.fft.fftfreq(m, d=grid.pitch_mm)
-    h = transfer_function(freqs, freqs, wavelength_nm, distance_mm, kind)
-    if band_limit:
-        span_mm = m * grid.pitch_mm
-        f_max = 1.0 / (nm_to_mm(wavelength_nm) * jnp.sqrt((2 * distance_mm / span_mm) ** 2 + 1))
-        passed = jnp.abs(freqs) <= f_max
-        h = h * (passed[:, None] & passed[None, :])
+    h = angular_spectrum_kernel(grid, wavelength_nm, distance_mm, m, kind, band_limit)
     # Round trip through unshifted FFTs keeps every sample where it was: no shifts needed.
     out = jnp.fft.ifft2(jnp.fft.fft2(padded) * h)
     return crop_centred(out, n)

@@ -14,8 +14,18 @@ normalisation of :mod:`invglare.optics.fraunhofer`: a closed-form area passed as
 | `FraunhoferMFT` | `fraunhofer`, `mft`     | matrix Fourier transform: any scale and field   |
 | `FresnelFFT`    | `fresnel`, `fft`        | eq. 3 of Ritschel et al. (quadratic phase E)    |
 | `FresnelMFT`    | `fresnel`, `mft`        | the same at any output sampling                 |
+| `QuadFraunhofer`| `fraunhofer`, `quad`    | closed-form transform of the raster's quads     |
+| `QuadFresnel`   | `fresnel`, `quad`       | Fresnel integrals per quad: no chirp sampling   |
+| `PolygonFraunhofer` | `fraunhofer`, `polygon` | exact transforms of the shapes themselves   |
 | `FresnelTransfer` | `fresnel`, `transfer` | eq. 3 on the image plane by the Fresnel kernel: |
 |                 |                         | alias-free at short distances (the eye's 17 mm) |
+
+The quad and polygon methods (:mod:`invglare.optics.quad`, Scandolo, Lee & Eisemann 2018)
+decide a structure on concrete values (the quadtree of a raster; which shapes overlap)
+before any call: :meth:`AbstractPropagator.prepared` returns a propagator ready for a
+model's aperture, and models call it when they are built. `takes` says what a call
+expects: ``"raster"`` (the aperture's transmission on `grid`) or ``"shapes"`` (the
+:class:`~invglare.aperture.Aperture` itself, for the polygon method).
 
 :func:`make_propagator` turns the config's strings into one of them, checking that the
 sampling cannot alias. A propagation that does not start from a raster (an analytic
@@ -28,22 +38,38 @@ propagator and implements ``__call__(field, wavelength_nm)``; models call nothin
 # No `from __future__ import annotations` here: equinox reads the AbstractVar and
 # AbstractClassVar annotations as objects when the class is created.
 import abc
+import dataclasses
 import math
-from typing import ClassVar
+from collections.abc import Mapping
+from typing import Any, ClassVar
 
 import equinox as eqx
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, ArrayLike, Float, Inexact
 
-from invglare._core.checks import check_positive, choose
+from invglare._core.checks import check_positive, choose, is_concrete
 from invglare._core.grids import AngularGrid, ApertureGrid
 from invglare.errors import ConfigError, PhysicsRangeError
 from invglare.optics.fourier import pad_centred
 from invglare.optics.fraunhofer import fraunhofer_mft, intensity_fft, transmitted_power
 from invglare.optics.fresnel import fresnel_near_field, fresnel_phase, near_field_fft_npix
+from invglare.optics.quad import prepare
+from invglare.optics.quad.farfield import quad_far_field
+from invglare.optics.quad.nearfield import fresnel_kernel, quad_near_field
+from invglare.optics.quad.options import (
+    PolygonOptions,
+    QuadOptions,
+    check_representable,
+    step_px,
+)
+from invglare.optics.quad.plan import QuadPlan
+from invglare.optics.quad.transform import box_kernel, unfold
 
 PROPAGATIONS = ("fraunhofer", "fresnel")
-METHODS = ("auto", "fft", "mft", "transfer")
+METHODS = ("auto", "fft", "mft", "transfer", "quad", "polygon")
+#: The methods that take options (a ``[model.<method>]`` table).
+METHOD_OPTIONS = {"quad": QuadOptions, "polygon": PolygonOptions}
 
 #: Largest FFT the automatic method choice will pick before falling back to the MFT.
 MAX_AUTO_FFT_NPIX = 4096
@@ -67,6 +93,7 @@ class AbstractPropagator(eqx.Module):
     focal_length_mm: Float[Array, ""] = eqx.field(converter=jnp.asarray)
     propagation: eqx.AbstractClassVar[str]
     method: eqx.AbstractClassVar[str]
+    takes: eqx.AbstractClassVar[str]
 
     @abc.abstractmethod
     def __call__(
@@ -82,6 +109,15 @@ class AbstractPropagator(eqx.Module):
         None measures the power through the aperture on the raster, ``sum |t| pitch^2``.
         """
 
+    @abc.abstractmethod
+    def prepared(self, field) -> "AbstractPropagator":
+        """A copy ready for `field` (concrete: a raster, or an Aperture when `takes` is
+        ``"shapes"``); the discrete transforms need nothing and return themselves."""
+
+    @abc.abstractmethod
+    def options(self) -> dict[str, Any]:
+        """The method's own config keys (the ``[model.<method>]`` table), or ``{}``."""
+
 
 class FraunhoferFFT(AbstractPropagator):
     """Far field by an FFT of the field zero-padded to `fft_npix`: pixels of
@@ -90,6 +126,14 @@ class FraunhoferFFT(AbstractPropagator):
     fft_npix: int = eqx.field(static=True, kw_only=True)
     propagation: ClassVar[str] = "fraunhofer"
     method: ClassVar[str] = "fft"
+
+    takes: ClassVar[str] = "raster"
+
+    def prepared(self, field):
+        return self
+
+    def options(self):
+        return {}
 
     def __call__(self, field, wavelength_nm, *, open_area_mm2=None):
         area_px = None if open_area_mm2 is None else open_area_mm2 / self.grid.pitch_mm**2
@@ -109,6 +153,14 @@ class FraunhoferMFT(AbstractPropagator):
     propagation: ClassVar[str] = "fraunhofer"
     method: ClassVar[str] = "mft"
 
+    takes: ClassVar[str] = "raster"
+
+    def prepared(self, field):
+        return self
+
+    def options(self):
+        return {}
+
     def __call__(self, field, wavelength_nm, *, open_area_mm2=None):
         if self.core_npix is None or self.core_npix >= self.output.npix:
             return fraunhofer_mft(
@@ -126,6 +178,14 @@ class FresnelFFT(AbstractPropagator):
     propagation: ClassVar[str] = "fresnel"
     method: ClassVar[str] = "fft"
 
+    takes: ClassVar[str] = "raster"
+
+    def prepared(self, field):
+        return self
+
+    def options(self):
+        return {}
+
     def __call__(self, field, wavelength_nm, *, open_area_mm2=None):
         # The phase leaves the power through the aperture as it is: measured before it.
         if open_area_mm2 is None:
@@ -141,6 +201,14 @@ class FresnelMFT(AbstractPropagator):
     propagation: ClassVar[str] = "fresnel"
     method: ClassVar[str] = "mft"
 
+    takes: ClassVar[str] = "raster"
+
+    def prepared(self, field):
+        return self
+
+    def options(self):
+        return {}
+
     def __call__(self, field, wavelength_nm, *, open_area_mm2=None):
         if open_area_mm2 is None:
             open_area_mm2 = transmitted_power(field, self.grid.pitch_mm)
@@ -148,6 +216,147 @@ class FresnelMFT(AbstractPropagator):
         return fraunhofer_mft(
             field, self.grid, wavelength_nm, self.output, open_area_mm2=open_area_mm2
         )
+
+
+class QuadFraunhofer(AbstractPropagator):
+    """Far field of the raster's quads in closed form (Scandolo et al., sec. 4.1-4.3).
+
+    The raster is read as a piecewise-constant function: any output pixel scale and field,
+    no padding, no aliasing; it equals the MFT of the raster times the pixel's transfer
+    function ``sinc(f_x p) sinc(f_y p)``. `plan` (the quadtree, decided on a concrete
+    raster by :meth:`prepared`) and `tiles` (culling) are static.
+    """
+
+    quad: QuadOptions = eqx.field(static=True, kw_only=True)
+    wavelengths_nm: tuple[float, ...] = eqx.field(static=True, kw_only=True)
+    plan: QuadPlan | None = eqx.field(static=True, default=None, kw_only=True)
+    tiles: tuple | None = eqx.field(static=True, default=None, kw_only=True)
+    propagation: ClassVar[str] = "fraunhofer"
+    method: ClassVar[str] = "quad"
+    takes: ClassVar[str] = "raster"
+
+    def __call__(self, field, wavelength_nm, *, open_area_mm2=None):
+        prop = self if self.plan is not None else self.prepared(field)
+        field = prepare.checked_raster(prop.plan, field, self.method)
+        step = step_px(self.grid, self.output, wavelength_nm)
+        return quad_far_field(
+            prop.plan, field, step, self.output.npix, prepare.as_tiles(prop.tiles),
+            power_px=_area_px(open_area_mm2, self.grid),
+        )  # fmt: skip
+
+    def prepared(self, field):
+        raster = prepare.concrete_raster(field, self.method)
+        plan = prepare.quad_plan(raster, self.quad)
+        steps = tuple(float(step_px(self.grid, self.output, w)) for w in self.wavelengths_nm)
+        tiles = prepare.quad_tiles(
+            plan, raster, self.quad, box_kernel, self.output.npix, steps,
+            (None,) * len(steps), far=True,
+        )  # fmt: skip
+        return dataclasses.replace(self, plan=plan, tiles=tiles)
+
+    def options(self):
+        return self.quad.to_dict()
+
+
+class QuadFresnel(AbstractPropagator):
+    """Near field (eq. 3 of Ritschel et al.; eq. 4 of Scandolo et al.) of the raster's quads,
+    each by closed-form Fresnel integrals (sec. 4.5): no chirp to sample, so no aliasing at
+    any distance and no minimum raster size. `focal_length_mm` is the distance."""
+
+    quad: QuadOptions = eqx.field(static=True, kw_only=True)
+    wavelengths_nm: tuple[float, ...] = eqx.field(static=True, kw_only=True)
+    plan: QuadPlan | None = eqx.field(static=True, default=None, kw_only=True)
+    tiles: tuple | None = eqx.field(static=True, default=None, kw_only=True)
+    propagation: ClassVar[str] = "fresnel"
+    method: ClassVar[str] = "quad"
+    takes: ClassVar[str] = "raster"
+
+    def alpha(self, wavelength_nm):
+        """The chirp in raster pixels, ``pitch^2 / (lambda d)``."""
+        return self.grid.pitch_mm**2 / (jnp.asarray(wavelength_nm) * 1e-6 * self.focal_length_mm)
+
+    def __call__(self, field, wavelength_nm, *, open_area_mm2=None):
+        prop = self if self.plan is not None else self.prepared(field)
+        field = prepare.checked_raster(prop.plan, field, self.method)
+        step = step_px(self.grid, self.output, wavelength_nm)
+        return quad_near_field(
+            prop.plan, field, step, self.alpha(wavelength_nm), self.output.npix,
+            prepare.as_tiles(prop.tiles), power_px=_area_px(open_area_mm2, self.grid),
+        )  # fmt: skip
+
+    def prepared(self, field):
+        raster = prepare.concrete_raster(field, self.method)
+        plan = prepare.quad_plan(raster, self.quad)
+        steps = tuple(float(step_px(self.grid, self.output, w)) for w in self.wavelengths_nm)
+        alphas = tuple(self.alpha(w) for w in self.wavelengths_nm)
+        tiles = prepare.quad_tiles(
+            plan, raster, self.quad, fresnel_kernel, self.output.npix, steps, alphas,
+            far=False,
+        )  # fmt: skip
+        return dataclasses.replace(self, plan=plan, tiles=tiles)
+
+    def options(self):
+        return self.quad.to_dict()
+
+
+class PolygonFraunhofer(AbstractPropagator):
+    """Far field of the aperture's shapes themselves: exact polygon and ellipse transforms
+    (Lee & Mittra 1983), differentiable in every vertex, no raster (except the overlaps of
+    shapes, see :mod:`invglare.optics.quad.outline`). A call takes the
+    :class:`~invglare.aperture.Aperture` (`takes` is ``"shapes"``)."""
+
+    polygon: PolygonOptions = eqx.field(static=True, kw_only=True)
+    wavelengths_nm: tuple[float, ...] = eqx.field(static=True, kw_only=True)
+    series_at: tuple | None = eqx.field(static=True, default=None, kw_only=True)
+    overlap: QuadPlan | None = eqx.field(static=True, default=None, kw_only=True)
+    propagation: ClassVar[str] = "fraunhofer"
+    method: ClassVar[str] = "polygon"
+    takes: ClassVar[str] = "shapes"
+
+    def __call__(self, field, wavelength_nm, *, open_area_mm2=None):
+        prop = self if self.series_at is not None else self.prepared(field)
+        width = self.grid.width_mm
+        pieces = prepare.aperture_pieces_checked(field, width, self.polygon.arc_segments)
+        fy, fx = prepare.half_plane_freqs(self.output, wavelength_nm)
+        rows, cols = (np.asarray(a, int) for a in prop.series_at)
+        total = prepare.pieces_transform(pieces, fy, fx, (rows, cols))
+        if prop.overlap is not None:
+            residue = prepare.checked_raster(
+                prop.overlap, prepare.overlap_residue(field, self.grid), self.method
+            )
+            step = step_px(self.grid, self.output, wavelength_nm)
+            extra = prepare.residue_half_plane(prop.overlap, residue, step, self.output.npix)
+            total = total + extra * self.grid.pitch_mm**2
+        # Per unit power through the aperture: a closed-form area when given, else the
+        # transform's own F(0), the open area of the shapes (overlaps counted once).
+        area = jnp.real(total[0, self.output.npix // 2]) if open_area_mm2 is None else open_area_mm2
+        area = jnp.maximum(area, 1e-30)
+        scale = (self.output.pixel_scale_rad / (jnp.asarray(wavelength_nm) * 1e-6)) ** 2
+        block = (total.real**2 + total.imag**2) * (scale / area)
+        h = self.output.npix // 2
+        return unfold(self.output.npix, block[:, h:], block[:, h::-1])
+
+    def prepared(self, field):
+        width = self.grid.width_mm
+        pieces = prepare.aperture_pieces_checked(field, width, self.polygon.arc_segments)
+        for piece in pieces:
+            arrays = (piece.vertices, piece.centre, piece.semi_axes)
+            if not all(a is None or is_concrete(a) for a in arrays):
+                raise ConfigError(
+                    "method = 'polygon' decides which shapes overlap on concrete shapes; "
+                    "prepare the propagator outside jit with propagator.prepared(aperture)"
+                )
+        series = prepare.polygon_series_points(pieces, self.output, max(self.wavelengths_nm))
+        overlap = prepare.overlap_plan(field, self.grid, self.polygon)
+        return dataclasses.replace(self, series_at=series, overlap=overlap)
+
+    def options(self):
+        return self.polygon.to_dict()
+
+
+def _area_px(open_area_mm2: ArrayLike | None, grid: ApertureGrid) -> Float[Array, ""] | None:
+    """A closed-form area in aperture pixels (None stays None: measured on the raster)."""
+    return None if open_area_mm2 is None else jnp.asarray(open_area_mm2) / grid.pitch_mm**2
 
 
 class FresnelTransfer(AbstractPropagator):
@@ -164,6 +373,13 @@ class FresnelTransfer(AbstractPropagator):
     fft_npix: int = eqx.field(static=True, kw_only=True)
     propagation: ClassVar[str] = "fresnel"
     method: ClassVar[str] = "transfer"
+    takes: ClassVar[str] = "raster"
+
+    def prepared(self, field):
+        return self
+
+    def options(self):
+        return {}
 
     def __call__(self, field, wavelength_nm, *, open_area_mm2=None):
         return fresnel_near_field(
@@ -175,14 +391,44 @@ class FresnelTransfer(AbstractPropagator):
 #: (propagation, method) of the config → the final class.
 PROPAGATOR_CLASSES: dict[tuple[str, str], type[AbstractPropagator]] = {
     (cls.propagation, cls.method): cls
-    for cls in (FraunhoferFFT, FraunhoferMFT, FresnelFFT, FresnelMFT, FresnelTransfer)
-}
+    for cls in (
+        FraunhoferFFT, FraunhoferMFT, FresnelFFT, FresnelMFT, QuadFraunhofer, QuadFresnel,
+        PolygonFraunhofer, FresnelTransfer,
+    )
+}  # fmt: skip
 
 
 def _check_npix(name: str, value: int, minimum: int) -> int:
     if isinstance(value, bool) or int(value) != value or value < minimum:
         raise PhysicsRangeError(f"{name} must be an integer >= {minimum}, got {value}")
     return int(value)
+
+
+def _analytic_propagator(
+    method: str,
+    propagation: str,
+    grid: ApertureGrid,
+    output: AngularGrid,
+    focal_length_mm: float,
+    wavelengths_nm: tuple[float, ...],
+    method_options: Mapping[str, Any] | None,
+) -> AbstractPropagator:
+    """A quad or polygon propagator: no aliasing limits, only the float type's (see
+    :func:`~invglare.optics.quad.options.check_representable`)."""
+    if method == "polygon" and propagation != "fraunhofer":
+        raise ConfigError(
+            "method = 'polygon' is a far-field (Fraunhofer) transform: polygons have no "
+            "closed-form Fresnel integral; use method = 'quad' for propagation = 'fresnel'"
+        )
+    distance = focal_length_mm if propagation == "fresnel" else None
+    check_representable(grid, output, min(wavelengths_nm), distance)
+    opts = METHOD_OPTIONS[method].from_mapping(method_options)
+    cls = PROPAGATOR_CLASSES[(propagation, method)]
+    kwargs = {"quad" if method == "quad" else "polygon": opts}
+    return cls(
+        grid=grid, output=output, focal_length_mm=focal_length_mm,
+        wavelengths_nm=tuple(float(w) for w in wavelengths_nm), **kwargs,
+    )  # fmt: skip
 
 
 def make_propagator(
@@ -196,6 +442,8 @@ def make_propagator(
     aperture_npix: int = 256,
     propagation: str = "fraunhofer",
     method: str = "auto",
+    method_options: Mapping[str, Any] | None = None,
+    wavelengths_nm: tuple[float, ...] | None = None,
     longest_wavelength_nm: float | None = None,
     beyond_band: bool = False,
 ) -> AbstractPropagator:
@@ -218,12 +466,20 @@ def make_propagator(
       native one (with ``fft_npix = max(npix, 2 * aperture_npix)``).
     - `propagation`: ``"fraunhofer"`` or ``"fresnel"``.
     - `method`: ``"fft"``, ``"mft"`` or ``"auto"`` (the FFT when it produces the
-      requested pixel scale exactly, else the MFT); ``"transfer"`` (Fresnel only) for the
-      image-plane near field of :class:`FresnelTransfer`, whose pixels are
-      ``pitch / focal_length_mm`` rad (a `pixel_scale_deg` must equal that).
+      requested pixel scale exactly, else the MFT); ``"quad"`` (the raster's quads in
+      closed form, far or near field); ``"polygon"`` (the shapes' exact transforms);
+      ``"transfer"`` (Fresnel only) for the image-plane near field of
+      :class:`FresnelTransfer`, whose pixels are ``pitch / focal_length_mm`` rad (a
+      `pixel_scale_deg` must equal that).
+    - `method_options`: the ``[model.quad]`` / ``[model.polygon]`` table
+      (:class:`~invglare.optics.quad.options.QuadOptions`, `PolygonOptions`).
+    - `wavelengths_nm`: every wavelength the propagator will evaluate (quad culling is
+      decided for them; default the FFT wavelength and the shortest one).
 
     **Returns:** a :class:`FraunhoferFFT`, :class:`FraunhoferMFT`, :class:`FresnelFFT`,
-    :class:`FresnelMFT` or :class:`FresnelTransfer`.
+    :class:`FresnelMFT`, :class:`FresnelTransfer`, :class:`QuadFraunhofer`,
+    :class:`QuadFresnel` or :class:`PolygonFraunhofer` (the last three still to be
+    :meth:`~AbstractPropagator.prepared` for an aperture).
 
     **Example:**
 
@@ -240,6 +496,19 @@ def make_propagator(
     check_positive("window_mm", window_mm, "mm")
     check_positive("focal_length_mm", focal_length_mm, "mm")
     pitch = window_mm / aperture_npix
+    if method_options and method not in METHOD_OPTIONS:
+        raise ConfigError(f"method = {method!r} takes no options, got {dict(method_options)}")
+    if method in METHOD_OPTIONS:
+        if pixel_scale_deg is None:  # the FFT's native scale, as the fast path would give
+            fft_npix = max(npix, 2 * aperture_npix)
+            fft_npix += fft_npix % 2
+            pixel_scale_deg = math.degrees(fft_wavelength_nm * 1e-6 / (fft_npix * pitch))
+        check_positive("pixel_scale_deg", pixel_scale_deg, "deg")
+        waves = wavelengths_nm or (fft_wavelength_nm, shortest_wavelength_nm)
+        return _analytic_propagator(
+            method, propagation, ApertureGrid.from_width(aperture_npix, window_mm),
+            AngularGrid(npix, pixel_scale_deg), focal_length_mm, tuple(waves), method_options,
+        )  # fmt: skip
     if method == "transfer":
         return _transfer_propagator(
             window_mm=window_mm,

@@ -18,6 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from invglare._core.colour import rec709_luminance_np
+from invglare.regress.cases import CASES
 from invglare.regress.compare import log_scaled, metric_cells
 from invglare.regress.run import CaseResult
 
@@ -86,12 +87,18 @@ def write_report(
 ) -> Path:
     """Write ``<out_dir>/regression.md`` and a difference figure per case (``regression/``).
 
+    A run of some of the cases (``invglare regress CASE ...``) writes
+    ``regression.partial.md`` and ``regression.partial/`` beside them instead: the report
+    of the last full run stays as it was.
+
     **Returns:** the markdown path. Every file is written atomically.
     """
     from invglare.files.atomic import write_text_atomic
 
     out = Path(out_dir)
-    fig_dir = out / "regression"
+    partial = {r.case.name for r in results} != {c.name for c in CASES}
+    stem = "regression.partial" if partial else "regression"
+    fig_dir = out / stem
     for r in results:
         _figure(r, fig_dir / f"{r.case.name}.png")
     n_fail = sum(not r.passed for r in results)
@@ -99,6 +106,11 @@ def write_report(
     verdict = "all cases pass" if n_fail == 0 else f"{n_fail} of {len(results)} case(s) FAIL"
     if updated:
         verdict += f" before the update; rewritten: {', '.join(updated)}"
+    if partial:
+        verdict += (
+            f"; a partial run of {len(results)} of the {len(CASES)} cases "
+            "(`regression.md` holds the last full run)"
+        )
     total = sum(r.seconds for r in results)
     lines = [
         "# Golden regression",
@@ -111,7 +123,7 @@ def write_report(
     ]
     for r in results:
         cells = " | ".join(metric_cells(r.metrics))
-        name = f"[{r.case.name}](regression/{r.case.name}.png)"
+        name = f"[{r.case.name}]({stem}/{r.case.name}.png)"
         status = r.status.upper() if r.status != "pass" else "pass"
         lines.append(f"| {name} | {status} | {cells} | {r.seconds:.1f} |")
     lines += ["", "Tolerances (a case fails when any metric is outside its bound):", ""]
@@ -157,7 +169,7 @@ def write_report(
         "- EE diff: the largest difference of encircled energy (fraction of the unit-energy PSF)",
         "  at radii 1, 2, 4, … px up to the half-width, per channel.",
         "",
-        "Difference images (`regression/<case>.png`, click a case): left the golden, middle the",
+        f"Difference images (`{stem}/<case>.png`, click a case): left the golden, middle the",
         "recomputed PSF, as `log10(PSF / peak)` from −6 to 0 (magma; luminance for RGB, y up);",
         "right `log10(|recomputed − golden| / peak)` from −12 to 0 (viridis; all dark when the",
         "two are bit-identical).",
@@ -166,6 +178,6 @@ def write_report(
         "(`temporal_frame`).",
         "",
     ]
-    path = out / "regression.md"
+    path = out / f"{stem}.md"
     write_text_atomic(path, "\n".join(lines))
     return path

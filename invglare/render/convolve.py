@@ -28,6 +28,7 @@ from invglare._core.checks import as_float
 from invglare._core.grids import check_positive
 from invglare._core.xla import materialise
 from invglare.errors import InputDataError, PhysicsRangeError
+from invglare.optics.fourier import fft_size
 from invglare.optics.spectral import scale_psf
 
 __all__ = [
@@ -41,29 +42,6 @@ __all__ = [
     "resample_psf",
     "wrap_psf",
 ]
-
-
-def fft_size(n: int) -> int:
-    """The smallest integer >= `n` whose only prime factors are 2, 3 and 5.
-
-    Such sizes are fast for every FFT library JAX uses (pocketfft/ducc on CPU,
-    cuFFT on GPU), while costing at most a few percent more samples than `n`.
-
-    ```python
-    fft_size(1025)   # 1080
-    ```
-    """
-    if n < 1:
-        raise ValueError(f"FFT size must be >= 1, got {n}")
-    m = n
-    while True:  # at most a few percent above n, so a plain search is cheap
-        k = m
-        for p in (2, 3, 5):
-            while k % p == 0:
-                k //= p
-        if k == 1:
-            return m
-        m += 1
 
 
 def _reach(n_image: int, n_psf: int) -> tuple[int, int]:

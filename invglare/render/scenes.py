@@ -17,6 +17,10 @@ PSFs invglare computes), so the field of view is `npix * pixel_scale_deg`; the
 layout is given in fractions of the frame and the light sources in degrees, so
 sources keep their angular size when `npix` changes.
 
+Each scene also has a depth buffer (:data:`SCENE_DEPTHS`, planar depth in metres, the
+holographic eye's default encoding), written beside it by ``invglare scene --depth``: the
+eye's height over the ground, the sources' sizes and the rooms give the distances.
+
 Colours of light sources are the linear sRGB chromaticities of Planckian
 radiators (computed once with colour-science, CIE 1931 2° observer, scaled to unit
 luminance and hard-coded here so that generating a scene does not import it).
@@ -37,9 +41,13 @@ from invglare.errors import ConfigError, InputDataError
 
 __all__ = [
     "SCENES",
+    "SCENE_DEPTHS",
     "candle",
+    "candle_depth_m",
     "street_lights_at_night",
+    "street_lights_at_night_depth_m",
     "sunlit_specular_highlight",
+    "sunlit_specular_highlight_depth_m",
     "validate_scene",
     "write_scene",
 ]
@@ -51,6 +59,11 @@ _FLAME_1900K = (2.64, 0.614, 0.01)
 _NIGHT_SKY = (0.55, 0.9, 1.9)
 _DAY_SKY = (0.75, 0.98, 1.45)
 _WHITE = (1.0, 1.0, 1.0)
+
+#: Depth of the sky (m): far enough that every wavefront from it is plane at the eye.
+SKY_DEPTH_M = 1000.0
+#: Height of the eye over the ground (m), which sets the depth of every ground pixel.
+EYE_HEIGHT_M = 1.6
 
 
 def _colour(rgb) -> Array:
@@ -92,6 +105,22 @@ def _check_npix(npix: int, minimum: int = 16) -> int:
     if not isinstance(npix, int | np.integer) or npix < minimum:
         raise ConfigError(f"scene npix must be an int >= {minimum}; got {npix!r}")
     return int(npix)
+
+
+def _street_lamps(npix: int, scale: float) -> tuple[Array, Array, Array, Array]:
+    """The six lamps, receding along a line towards a vanishing point right of centre:
+    their distance along the row `t` (0-1), centres (rows, columns) and radii (px)."""
+    t = jnp.linspace(0.0, 1.0, 6) ** 0.7
+    cy = (0.12 + (0.40 - 0.12) * t) * npix
+    cx = (0.08 + (0.62 - 0.08) * t) * npix
+    radius_px = jnp.maximum((0.5 - 0.38 * t) / scale, 0.75)
+    return t, cy, cx, radius_px
+
+
+def _ground_depth_m(y: Array, horizon: float, scale: float) -> Array:
+    """Planar depth (m) of flat ground `EYE_HEIGHT_M` below the eye, rows below `horizon`."""
+    below_rad = jnp.radians(jnp.maximum(y - horizon + 0.5, 0.5) * scale)
+    return jnp.minimum(EYE_HEIGHT_M / jnp.tan(below_rad), SKY_DEPTH_M)
 
 
 def street_lights_at_night(
@@ -141,12 +170,8 @@ def street_lights_at_night(
             level = jnp.where(lit[i, j], lum[i, j], 0.0)
             image = image + (win * level)[..., None] * _colour(_SODIUM_2000K) * 0.3
 
-    # Lamps recede along a line towards a vanishing point right of centre.
-    n = 6
-    t = jnp.linspace(0.0, 1.0, n) ** 0.7
-    cy = (0.12 + (0.40 - 0.12) * t) * npix
-    cx = (0.08 + (0.62 - 0.08) * t) * npix
-    radius_px = jnp.maximum((0.5 - 0.38 * t) / scale, 0.75)
+    t, cy, cx, radius_px = _street_lamps(npix, scale)
+    n = t.shape[0]
     brightness = 1e4 * jnp.exp(jax.random.uniform(k_lamp, (n,), minval=-0.7, maxval=0.7))
     for i in range(n):
         colour = _colour(_SODIUM_2000K if i % 2 == 0 else _LED_4000K)
@@ -250,6 +275,55 @@ def candle(npix: int = 256, seed: int | ArrayLike = 0) -> tuple[Float[Array, "np
     return jnp.maximum(image, 0).astype(jnp.float32), scale
 
 
+def street_lights_at_night_depth_m(npix: int = 256) -> Float[Array, "npix npix"]:
+    """Planar depth (m) of :func:`street_lights_at_night`: the road from the eye's height
+    (1.6 m, so 13 m at the bottom of a 256-pixel frame), the building's facade at 60 m,
+    the lamp heads (0.4 m across) where their angular size puts them (23-95 m), the sky at
+    1000 m. The same for every seed."""
+    npix = _check_npix(npix)
+    scale = 0.05
+    y, x = _grid(npix)
+    horizon = 0.45 * npix
+    depth = jnp.where(y < horizon, SKY_DEPTH_M, _ground_depth_m(y, horizon, scale))
+    building = _box(y, x, 0.2 * npix, 0.7 * npix, horizon, 0.95 * npix)
+    depth = jnp.where(building > 0.5, 60.0, depth)
+    _, cy, cx, radius_px = _street_lamps(npix, scale)
+    for i in range(cy.shape[0]):
+        distance = 0.2 / jnp.tan(jnp.radians(radius_px[i] * scale))
+        depth = jnp.where(_disk(y, x, cy[i], cx[i], radius_px[i]) > 0.5, distance, depth)
+    return jnp.broadcast_to(depth, (npix, npix)).astype(jnp.float32)
+
+
+def sunlit_specular_highlight_depth_m(npix: int = 256) -> Float[Array, "npix npix"]:
+    """Planar depth (m) of :func:`sunlit_specular_highlight`: the facade 30 m away, the
+    ground from its foot to 5 m at the bottom row, the car at 12 m (the glints on it and on
+    a window with them), the sky at 1000 m."""
+    npix = _check_npix(npix)
+    y, x = _grid(npix)
+    near = jnp.clip((y - 0.75 * npix) / (0.25 * npix), 0.0, 1.0)  # 0 at the facade's foot
+    ground = 1.0 / (1.0 / 30.0 + near * (1.0 / 5.0 - 1.0 / 30.0))
+    depth = jnp.where(y < 0.3 * npix, SKY_DEPTH_M, jnp.where(y >= 0.75 * npix, ground, 30.0))
+    car = _box(y, x, 0.66 * npix, 0.2 * npix, 0.86 * npix, 0.75 * npix)
+    depth = jnp.where(car > 0.5, 12.0, depth)
+    return jnp.broadcast_to(depth, (npix, npix)).astype(jnp.float32)
+
+
+def candle_depth_m(npix: int = 256) -> Float[Array, "npix npix"]:
+    """Planar depth (m) of :func:`candle`: the wall 3 m away, the table from 1.5 m at its
+    back edge to 0.6 m at the bottom row, the candle and its flame at 1 m."""
+    npix = _check_npix(npix)
+    scale = 0.03
+    y, x = _grid(npix)
+    near = jnp.clip((y - 0.7 * npix) / (0.3 * npix), 0.0, 1.0)
+    table = 1.0 / (1.0 / 1.5 + near * (1.0 / 0.6 - 1.0 / 1.5))
+    depth = jnp.where(y >= 0.7 * npix, table, 3.0)
+    fy, fx = 0.42 * npix, 0.5 * npix
+    half_w = max(0.25 / scale, 2.0)
+    candle_and_flame = _box(y, x, fy - 0.45 / scale, fx - half_w, 0.72 * npix, fx + half_w)
+    depth = jnp.where(candle_and_flame > 0.5, 1.0, depth)
+    return jnp.broadcast_to(depth, (npix, npix)).astype(jnp.float32)
+
+
 #: The bundled scenes by name: `fn(npix, seed) -> (image, pixel_scale_deg)`.
 SCENES: dict[str, Callable[..., tuple[Array, float]]] = {
     "street_lights_at_night": street_lights_at_night,
@@ -257,17 +331,32 @@ SCENES: dict[str, Callable[..., tuple[Array, float]]] = {
     "candle": candle,
 }
 
+#: Their depth buffers by name: `fn(npix) -> (npix, npix)` planar depth in metres.
+SCENE_DEPTHS: dict[str, Callable[[int], Array]] = {
+    "street_lights_at_night": street_lights_at_night_depth_m,
+    "sunlit_specular_highlight": sunlit_specular_highlight_depth_m,
+    "candle": candle_depth_m,
+}
 
-def write_scene(name: str, path: str | os.PathLike[str], npix: int = 256, seed: int = 0) -> Path:
+
+def write_scene(
+    name: str,
+    path: str | os.PathLike[str],
+    npix: int = 256,
+    seed: int = 0,
+    depth_path: str | os.PathLike[str] | None = None,
+) -> Path:
     """Generate a bundled scene and write it as an RGB EXR with its `pixelScaleDeg`.
 
     The header also records `invglareScene` (the name), `invglareSeed` and
-    `units` (`"cd/m^2"`). Written atomically.
+    `units` (`"cd/m^2"`). Written atomically. With `depth_path`, the scene's depth
+    buffer (:data:`SCENE_DEPTHS`) goes there too, as a ``Z`` channel in metres
+    (`units` ``"m"``), the file ``invglare render --depth`` reads for a holographic eye.
 
     **Raises:** `ConfigError` for an unknown name (listing the valid ones).
 
     ```python
-    write_scene("candle", "candle.exr", npix=256)
+    write_scene("candle", "candle.exr", npix=256, depth_path="candle_depth.exr")
     ```
     """
     fn = SCENES.get(name) if isinstance(name, str) else None
@@ -276,6 +365,14 @@ def write_scene(name: str, path: str | os.PathLike[str], npix: int = 256, seed: 
     from invglare.files.exr import write_exr  # imported here: scenes are usable without OpenEXR
 
     image, scale = fn(npix, seed)
+    if depth_path is not None:
+        write_exr(
+            depth_path,
+            np.asarray(SCENE_DEPTHS[name](npix))[..., None],
+            pixel_scale_deg=scale,
+            channels=("Z",),
+            attrs={"invglareScene": name, "units": "m"},
+        )
     return write_exr(
         path,
         np.asarray(image),

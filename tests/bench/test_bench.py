@@ -15,6 +15,7 @@ import pytest
 from typer.testing import CliRunner
 
 from invglare.bench import runner
+from invglare.bench.batch import BATCH_CASES
 from invglare.bench.fit import FIT_CASES, FitProblem, FreeParameter, fit_markdown, run_fit_benchmark
 from invglare.bench.runner import (
     CASES,
@@ -145,7 +146,7 @@ def test_add_ratios_from_synthetic_records():
 def test_select_patterns_skip_and_fit():
     cases, fits = select([])
     assert [c.name for c in cases] == [c.name for c in CASES]
-    assert fits == [*FIT_CASES, *SAMPLE_CASES, *UNKNOWN_DRAW_CASES]
+    assert fits == [*FIT_CASES, *SAMPLE_CASES, *UNKNOWN_DRAW_CASES, *BATCH_CASES]
     # A pattern brings the floors and JAX's FFT along, and leaves the fit out.
     cases, fits = select(["psf_mono"])
     names = {c.name for c in cases}
@@ -158,8 +159,10 @@ def test_select_patterns_skip_and_fit():
     assert cases == [] and fits == ["fit_unknown_draw"]
     cases, fits = select(["sample"])
     assert cases == [] and fits == ["sample_daylight_eye"]
-    # Everything but the fit and the sampling.
-    cases, fits = select([], ["fit", "sample"])
+    cases, fits = select(["batch"])
+    assert cases == [] and fits == ["batch_population"]
+    # Everything but the fit, the sampling and the batch.
+    cases, fits = select([], ["fit", "sample", "batch"])
     assert fits == [] and {c.name for c in cases} == {c.name for c in CASES}
     # Skipping never drops the floors the ratios need.
     cases, _ = select(["eye"], ["fft"])
@@ -397,3 +400,36 @@ def test_veiling_bench_series_and_direct_draw_the_same_ghosts():
     # The brightest pixel lies inside overlapping ghosts, away from every edge: equal up to
     # float32 rounding (6e-6 measured).
     assert series.max() == pytest.approx(direct.max(), rel=2e-5)
+
+
+@pytest.mark.slow
+def test_batch_benchmark_times_warm_clusters_of_1_and_2_workers(tmp_path):
+    """Three small disk photos (one warms the workers): photos per minute on 1 and 2
+    workers, the per-photo overhead of a task, and --vmap 2 with the values it fitted."""
+    from helpers import disk_population
+
+    from invglare.bench.batch import batch_markdown, run_batch_benchmark
+
+    disk_population(tmp_path, size=3)
+    with pytest.raises(ConfigError, match="has 3 photos; it needs 3 and one"):
+        run_batch_benchmark(n_photos=3, config_path=tmp_path / "fit.toml",
+                            photo_dir=tmp_path / "crowd")  # fmt: skip
+    record = run_batch_benchmark(
+        n_photos=2, workers=(1, 2), vmap=2, config_path=tmp_path / "fit.toml",
+        photo_dir=tmp_path / "crowd",
+    )  # fmt: skip
+    json.dumps(record)
+    one, two = record["clusters"]
+    assert (one["workers"], two["workers"]) == (1, 2) and one["speedup"] == 1.0
+    for c in (one, two):
+        assert c["photos_per_min"] == pytest.approx(60 * 2 / c["wall_s"])
+    assert two["speedup"] == pytest.approx(two["photos_per_min"] / one["photos_per_min"])
+    assert one["task_s_per_photo"] == pytest.approx(one["wall_s"] / 2)
+    assert one["overhead_s_per_photo"] == pytest.approx(
+        one["task_s_per_photo"] - one["direct_s_per_photo"]
+    )
+    assert one["direct_s_per_photo"] > 0 and one["vmap"] == 2
+    assert one["vmap_max_rel_diff"] < 1e-6  # the same optima, batched arithmetic
+    md = "\n".join(batch_markdown(record))
+    assert "## Batch fits on Dask: batch_population" in md and "| 2 |" in md
+    assert "overhead per photo" in md and "`--vmap 2`" in md

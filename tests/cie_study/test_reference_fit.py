@@ -50,6 +50,16 @@ def write_config(folder, reference: str, extra: str = EYE):
     return path
 
 
+def test_command_line_overrides_replace_the_configs_solver_keys(tmp_path):
+    """--n-starts / --max-steps win over [solver] n_starts / max_steps, which stay valid keys
+    (the override once made the reader call the config's own max_steps unknown)."""
+    path = write_config(tmp_path, "cie = { age = 25, pigmentation = 1 }")
+    setup = load_reference_fit(path, n_starts=1, max_steps=2).setup
+    assert (setup.n_starts, setup.max_steps) == (1, 2)
+    setup = load_reference_fit(path).setup
+    assert (setup.n_starts, setup.max_steps) == (3, 40)
+
+
 def test_a_psf_file_made_by_the_eye_is_fitted_back_to_its_parameters(tmp_path):
     """The reference is a 2-D EXR of the eye's own PSF at known particle values."""
     setup = load_reference_fit(write_config(tmp_path, "cie = { age = 25, pigmentation = 1 }")).setup

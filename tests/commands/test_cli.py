@@ -28,6 +28,15 @@ def test_help_is_instant_and_does_not_import_jax():
     assert invoke("--help").exit_code == 0
 
 
+def test_version_is_the_package_version():
+    """`invglare --version` prints the version pyproject.toml declares, without JAX."""
+    import tomllib
+
+    declared = tomllib.loads((EXAMPLES.parent / "pyproject.toml").read_text())["project"]
+    result = invoke("--version")
+    assert result.exit_code == 0 and result.output == f"invglare {declared['version']}\n"
+
+
 def test_psf_readme_command_writes_airy_exr(tmp_path):
     out = tmp_path / "psf.exr"
     png = tmp_path / "psf.png"

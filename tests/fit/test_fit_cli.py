@@ -176,6 +176,16 @@ def disk_report(disk):
 # the report
 
 
+def test_the_first_line_names_every_stages_views():
+    """'views radial, angular then pixels' for fits/eye_daylight.toml, not 'views pixels'."""
+    from invglare.commands.fit import views_in_order
+    from invglare.fit.stages import Stage
+
+    stage = Stage({"radial": 1.0, "angular": 1.0}, 40)
+    assert views_in_order([stage], {"pixels": 1.0}) == "radial, angular then pixels"
+    assert views_in_order([], {"pixels": 1.0, "log": 0.5}) == "pixels, log"
+
+
 def test_fit_report_files_and_recovery_with_clipped_core(disk_report):
     """Clipped core (survival-censored), 3 starts across [2, 5] mm: diameter within 0.5 %."""
     out, params, text = disk_report
@@ -528,6 +538,11 @@ TOLERANCES = {
         "model.light_angle_deg[0]": (0.04, False),  # 0.5 px of 0.08 deg
         "model.light_angle_deg[1]": (0.04, False),
         "model.ghosts.lens.sensor_reflectance": (0.05, True),
+    },
+    # The holographic eye's focus (0.625 D: 1.6 m) and pupil from a defocused light.
+    "holographic_defocus": {
+        "model.aperture.pupil.diameter_mm": (0.02, True),
+        "model.accommodation_d": (0.01, False),  # within 0.01 D: 1.6 m to 3 %
     },
 }
 

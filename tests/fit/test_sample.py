@@ -419,6 +419,16 @@ def test_moves_are_selectable_and_recorded(toy, tmp_path):
                for w in post.warnings)  # fmt: skip
 
 
+def test_digits_resolve_the_interval():
+    """A narrow posterior keeps its digits: 37 +- 1e-4 is not '37 | 37 | 37'."""
+    from invglare.fit.posterior_report import digits_to_resolve
+
+    n = digits_to_resolve(37.000012, 36.99990, 37.00011)
+    assert n == 8 and len({f"{v:.{n}g}" for v in (37.000012, 36.9999, 37.00011)}) == 3
+    assert digits_to_resolve(2.8, 2.7, 2.9) == 5  # at least five, as before
+    assert digits_to_resolve(0.0, -1.0, 1.0) == 5 and digits_to_resolve(3.0, 3.0, 3.0) == 5
+
+
 def test_report_files_are_written_with_the_summary_numbers(toy, toy_chain, tmp_path):
     space, fwd, target, _mean, _cov, _res = toy
     post = toy_chain
@@ -438,6 +448,10 @@ def test_report_files_are_written_with_the_summary_numbers(toy, toy_chain, tmp_p
     assert summary["moves"] == [["stretch", 1.0]]
     md = files["markdown"].read_text()
     assert "| `obs.flux` |" in md and "corner.png" in md and "predictive.png" in md
+    # Every row's percentiles are written apart: enough digits for its interval.
+    for row in (line for line in md.splitlines() if line.startswith("| `")):
+        cells = [c.strip() for c in row.split("|")[2:7]]
+        assert len(set(cells)) == 5, row
     assert 0.5 < summary["predictive"]["fraction_of_rings_inside_95"] <= 1.0
     assert not list((tmp_path / "posterior").glob(".*tmp*"))  # atomic: no temporary litter
 

@@ -88,6 +88,12 @@ def test_sample_command_fits_samples_resumes_and_reports(tmp_path):
     assert r.exit_code == 0, r.output
     summary = json.loads((post_dir / "summary.json").read_text())
     assert summary["n_steps"] == 80 and [x["start_step"] for x in summary["runs"]] == [0, 60]
+    # A posterior elsewhere (--out-dir) starts from the stored fit: no second fit runs there.
+    elsewhere = tmp_path / "elsewhere"
+    r = runner.invoke(app, [*args, "--steps", "20", "--out-dir", str(elsewhere)])
+    assert r.exit_code == 0, r.output
+    assert load_chain(elsewhere / "posterior" / "chain.h5").n_steps == 20
+    assert not (elsewhere / "params.json").exists()
 
 
 def test_committed_daylight_posterior_converged_and_covers_the_truth():

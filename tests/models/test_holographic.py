@@ -247,6 +247,18 @@ def test_config_round_trip_rebuilds_the_same_model():
     )
 
 
+def test_a_pixel_scale_override_replaces_the_configs_window():
+    """`--pixel-scale-deg`, or the photo a fit reads, sets the sampling of a config that gives
+    `window_mm` (as for every kind); the config giving both is still refused."""
+    cfg = _example_config()
+    own = build_model(cfg, npix=64)
+    model = build_model(cfg, npix=64, pixel_scale_deg=0.9 * own.pixel_scale_deg)
+    assert model.pixel_scale_deg == pytest.approx(0.9 * own.pixel_scale_deg, rel=1e-12)
+    both = {**cfg, "output": {**cfg["output"], "pixel_scale_deg": 0.003}}
+    with pytest.raises(ConfigError, match=r"window_mm or output\.pixel_scale_deg, not both"):
+        build_model(both, npix=64)
+
+
 def test_config_errors_name_the_key():
     cfg = _example_config()
     bad = {**cfg, "model": {**cfg["model"], "windw_mm": 8.0}}

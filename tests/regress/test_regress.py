@@ -223,8 +223,11 @@ def test_cli_fails_naming_the_case(golden_copy, tmp_path):
     assert result.exit_code == 1
     assert "FAIL aperture_fft_mono: rel_l2" in result.output
     assert "1 of 1 case(s) failed: aperture_fft_mono" in result.output
-    assert "| FAIL |" in (out / "regression.md").read_text()
-    assert (out / "regression" / "aperture_fft_mono.png").is_file()
+    # One case of all: a partial report beside the full one, which it leaves alone.
+    text = (out / "regression.partial.md").read_text()
+    assert "| FAIL |" in text and f"a partial run of 1 of the {len(CASES)} cases" in text
+    assert (out / "regression.partial" / "aperture_fft_mono.png").is_file()
+    assert not (out / "regression.md").exists() and not (out / "regression").exists()
 
 
 def test_cli_missing_golden_says_how_to_create_it(tmp_path):

@@ -14,6 +14,7 @@ from helpers import assert_grad_converges, x64
 
 from invglare.errors import ConfigError, InputDataError, PhysicsRangeError
 from invglare.files import encode_srgb, read_exr
+from invglare.files.depth_frames import read_frame_and_depth
 from invglare.optics.spectral import scale_psf
 from invglare.render import (
     DISPLAY_MAX,
@@ -45,6 +46,7 @@ from invglare.render import (
     validate_scene,
     write_scene,
 )
+from invglare.render.scenes import EYE_HEIGHT_M, SCENE_DEPTHS, SKY_DEPTH_M
 
 REC709 = np.array([0.2126, 0.7152, 0.0722])
 
@@ -167,6 +169,9 @@ def test_fft_size_is_smallest_235_smooth():
         m = fft_size(n)
         assert m >= n and smooth(m)
         assert not any(smooth(k) for k in range(n, m))
+        even = fft_size(n, even=True)  # the holographic eye's cropped grids
+        assert even >= n and even % 2 == 0 and smooth(even)
+        assert not any(smooth(k) for k in range(n, even) if k % 2 == 0)
 
 
 def test_resample_psf_energy_and_width():
@@ -561,6 +566,36 @@ def test_write_scene_exr_round_trip(tmp_path):
     assert exr.channels == ("R", "G", "B")
     assert exr.pixel_scale_deg == scale
     assert exr.attrs["invglareScene"] == "candle"
+
+
+@pytest.mark.parametrize("name", sorted(SCENES))
+def test_scene_depth_buffers(tmp_path, name):
+    """Every scene's depth: float32 metres, finite, from 0.5 m to the sky's 1000 m, the same
+    for every seed, written as a Z channel at the scene's pixel scale beside it."""
+    depth = np.asarray(SCENE_DEPTHS[name](64))
+    assert depth.shape == (64, 64) and depth.dtype == np.float32
+    assert np.all(np.isfinite(depth)) and 0.5 <= depth.min() and depth.max() <= SKY_DEPTH_M
+    assert len(np.unique(depth)) > 3  # not one constant depth
+    write_scene(name, tmp_path / "s.exr", npix=64, seed=3, depth_path=tmp_path / "z.exr")
+    got = read_frame_and_depth(tmp_path / "s.exr", tmp_path / "z.exr")
+    np.testing.assert_array_equal(got.depth, depth)
+    assert read_exr(tmp_path / "z.exr").channels == ("Z",)
+    assert got.pixel_scale_deg == SCENES[name](64, 3)[1]
+
+
+def test_street_depth_follows_the_ground_and_the_lamp_sizes():
+    """The road's planar depth is the eye's height over tan(angle below the horizon), the
+    bottom row of 256 at 0.05 deg/px 13 m away; a lamp head of 0.4 m subtending 1 deg is
+    22.9 m away (0.2 / tan 0.5 deg)."""
+    depth = np.asarray(SCENE_DEPTHS["street_lights_at_night"](256))
+    horizon, scale = 0.45 * 256, 0.05
+    rows = np.arange(200, 256)
+    expected = EYE_HEIGHT_M / np.tan(np.radians((rows - horizon + 0.5) * scale))
+    np.testing.assert_allclose(depth[rows, 20], expected, rtol=1e-5)
+    assert depth[-1, 20] == pytest.approx(13.0, abs=0.05)
+    nearest_lamp = (round(0.12 * 256), round(0.08 * 256))
+    assert depth[nearest_lamp] == pytest.approx(0.2 / np.tan(np.radians(0.5)), rel=1e-5)
+    assert depth[0, 128] == SKY_DEPTH_M
 
 
 def test_reinhard_treats_negative_out_of_gamut_luminance_as_black():

@@ -3,9 +3,9 @@
 Each layer of Novosad & Ziegler's eye (sec. 2.2) is a thin element: a complex
 transmission ``t(x, y)`` that multiplies the field at its plane. Between parallel planes
 the field is carried by the band-limited angular spectrum (Matsushima & Shimobaba 2009),
-:func:`invglare.optics.fresnel.transfer_function` with the same band limit as
-:func:`invglare.optics.fresnel.angular_spectrum`, precomputed once per wavelength and
-reused by every iteration (:func:`propagation_kernel`).
+:func:`invglare.optics.fresnel.angular_spectrum_kernel` (the kernel
+:func:`invglare.optics.fresnel.angular_spectrum` uses), on the grid itself (periodic),
+precomputed once per wavelength and reused by every iteration (`propagation_kernel`).
 
 The transmissions here are pure phases (their modulus is 1, so they keep the field's
 energy, Parseval):
@@ -38,7 +38,7 @@ from jaxtyping import Array, ArrayLike, Complex, Float
 
 from invglare._core.checks import check_range
 from invglare._core.grids import ApertureGrid, nm_to_mm
-from invglare.optics.fresnel import transfer_function
+from invglare.optics.fresnel import angular_spectrum_kernel as propagation_kernel
 
 __all__ = [
     "Spectacles",
@@ -110,36 +110,6 @@ def spectacle_phase(
 def max_power_per_mm(half_field_rad: float, radius_mm: float) -> float:
     """Largest lens power (1/mm) a grid samples out to `radius_mm`: ``half_field / radius``."""
     return half_field_rad / radius_mm
-
-
-def propagation_kernel(
-    grid: ApertureGrid,
-    wavelength_nm: ArrayLike,
-    distance_mm: ArrayLike,
-    pad_npix: int | None = None,
-    kind: str = "exact",
-    band_limit: bool = True,
-) -> Complex[Array, "m m"]:
-    """The band-limited angular-spectrum transfer function between two planes, FFT order.
-
-    It is the kernel :func:`invglare.optics.fresnel.angular_spectrum` builds inside (the
-    same :func:`~invglare.optics.fresnel.transfer_function` and the same band limit
-    ``1 / (lambda sqrt((2 d / (m pitch))^2 + 1))`` per axis), made once so that every
-    iteration reuses it. `pad_npix` defaults to the grid itself (``m = n``): a
-    *periodic* propagation, exact for a field that is periodic on the grid (a sum of the
-    grid's plane waves) and otherwise correct where light does not cross the window's
-    edge on the way, which holds for the pupil when the window is wider than the pupil
-    plus ``2 d tan(theta_max)``.
-    """
-    m = grid.npix if pad_npix is None else pad_npix
-    freqs = jnp.fft.fftfreq(m, d=grid.pitch_mm)
-    h = transfer_function(freqs, freqs, wavelength_nm, distance_mm, kind)
-    if band_limit:
-        span_mm = m * grid.pitch_mm
-        f_max = 1.0 / (nm_to_mm(wavelength_nm) * jnp.sqrt((2 * distance_mm / span_mm) ** 2 + 1))
-        passed = jnp.abs(freqs) <= f_max
-        h = h * (passed[:, None] & passed[None, :])
-    return h
 
 
 def propagate_periodic(

@@ -1,0 +1,207 @@
+"""`invglare fit-batch` on a real Dask LocalCluster of 2 worker processes.
+
+Four small disk photos (a population drawn by `invglare synth`: pupils, fluxes, centres
+and noise of their own) are fitted by one config; the batch must equal the serial
+`invglare fit` of each photo, report a corrupt photo and finish the others, survive a
+worker killed mid-task (its nanny restarts it, Dask reruns the task), and resume after
+Ctrl-C without refitting finished photos. Bad input fails before any work, in seconds.
+"""
+
+import json
+import os
+import re
+import signal
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+from helpers import disk_population
+from typer.testing import CliRunner
+
+from invglare.cli import app
+from invglare.commands.fit import run_fit
+from invglare.commands.fit_batch import run_fit_batch
+from invglare.fit import FitResult
+
+runner = CliRunner()
+ROOT = Path(__file__).resolve().parents[2]
+DIAMETER = "model.aperture.shapes[0].diameter_mm"
+
+def invoke(*args):
+    return runner.invoke(app, [str(a) for a in args])
+
+
+@pytest.fixture(scope="module")
+def crowd(tmp_path_factory):
+    """The folder with model.toml, fit.toml and crowd/disk_0[0-3].exr (+ truths)."""
+    return disk_population(tmp_path_factory.mktemp("crowd"))
+
+
+@pytest.fixture
+def inside(crowd, monkeypatch):
+    monkeypatch.chdir(crowd)
+    return crowd
+
+
+def params(folder: Path) -> dict:
+    return json.loads((folder / "params.json").read_text())
+
+
+@pytest.mark.slow
+def test_batch_equals_serial_fits_and_a_corrupt_photo_is_reported(inside, tmp_path):
+    """Four photos and a corrupt one on 2 workers: exit status 1 naming the corrupt photo;
+    the four match `invglare fit` of each photo alone to 1e-8 relative; the table holds
+    every parameter with its error and the failure's reason."""
+    (inside / "broken").mkdir(exist_ok=True)
+    (inside / "broken" / "disk_99.exr").write_bytes(b"not an EXR at all")
+    out = tmp_path / "out"
+    res = invoke("fit-batch", "fit.toml", "crowd/*.exr", "broken/disk_99.exr", "--workers", 2,
+                 "--out-dir", out, "--cache-dir", tmp_path / "jax", "--no-progress")  # fmt: skip
+    assert res.exit_code == 1, res.output
+    assert "1 of 5 photo(s) failed or did not converge: disk_99" in res.output
+    batch = out / "batch"
+    rows = (batch / "batch.csv").read_text().splitlines()
+    assert len(rows) == 6
+    assert rows[5].startswith("broken/disk_99.exr,disk_99,failed,") and "disk_99.exr" in rows[5]
+    for i in range(4):
+        name = f"disk_{i:02d}"
+        batched = params(batch / name)
+        assert batched["converged"], batched["message"]
+        assert (batch / name / "report.md").is_file() and (batch / name / "images.png").is_file()
+        # The serial fit of the same photo, with the same config.
+        config = (inside / "fit.toml").read_text().replace("disk_00", name)
+        (inside / f"fit_{name}.toml").write_text(config)
+        serial = params(run_fit(inside / f"fit_{name}.toml", out_dir=tmp_path / name,
+                                progress=False))  # fmt: skip
+        for path, entry in serial["parameters"].items():
+            got = batched["parameters"][path]
+            np.testing.assert_allclose(got["value"], entry["value"], rtol=1e-8, err_msg=path)
+            np.testing.assert_allclose(got["stderr"], entry["stderr"], rtol=1e-6, err_msg=path)
+            assert got["truth"] == entry["truth"]
+        truth = json.loads((inside / "crowd" / f"{name}.truth.json").read_text())
+        assert batched["parameters"][DIAMETER]["truth"] == truth["set"][DIAMETER]
+    md = (batch / "batch.md").read_text()
+    assert "5 photos: 4 converged, 0 converged to a poor fit, 0 not converged, 1 failed." in md
+    assert "- **disk_99** (failed): " in md
+    assert (batch / "histograms.png").is_file() and (batch / "fitted_vs_true.png").is_file()
+
+
+@pytest.mark.slow
+def test_a_worker_killed_mid_task_is_replaced_and_every_photo_finishes(inside, tmp_path):
+    """A cluster of 2 worker processes (started here, used through --scheduler); once a
+    worker is fitting, its process is killed (SIGKILL). Its nanny starts a new one, Dask
+    reruns the task, and every photo ends with a report."""
+    import dask
+    from distributed import Client, LocalCluster
+
+    with dask.config.set({"distributed.worker.multiprocessing-method": "spawn"}):
+        cluster = LocalCluster(n_workers=2, threads_per_worker=1, processes=True,
+                               dashboard_address=":0")  # fmt: skip
+    killed = []
+    try:
+        watcher = Client(cluster)
+        pids = watcher.run(os.getpid)
+
+        def kill_a_busy_worker():
+            deadline = time.time() + 600
+            while time.time() < deadline and not killed:
+                busy = [w for w, keys in watcher.processing().items() if keys]
+                if busy:
+                    time.sleep(2.0)  # well inside the task: it is compiling or solving
+                    os.kill(pids[busy[0]], signal.SIGKILL)
+                    killed.append(pids[busy[0]])
+                time.sleep(0.2)
+
+        thread = threading.Thread(target=kill_a_busy_worker, daemon=True)
+        thread.start()
+        summary = run_fit_batch(inside / "fit.toml", ["crowd/*.exr"], out_dir=tmp_path / "out",
+                                scheduler=cluster.scheduler_address, progress=False,
+                                cache_dir=tmp_path / "jax")  # fmt: skip
+        thread.join(timeout=5)
+        assert killed, "no worker was busy"
+        assert [r.status for r in summary.rows] == ["ok"] * 4, [r.reason for r in summary.rows]
+        assert len(watcher.scheduler_info()["workers"]) == 2  # the nanny replaced it
+        assert killed[0] not in watcher.run(os.getpid).values()
+        watcher.close()
+    finally:
+        cluster.close()
+
+
+@pytest.mark.slow
+def test_a_batch_interrupted_by_ctrl_c_resumes_without_refitting(inside, tmp_path):
+    """Ctrl-C (SIGINT) once the first photo's report is written: exit 130, that report
+    complete, no half-written one; the rerun skips it (its file untouched) and fits the rest."""
+    out = tmp_path / "out"
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    cmd = [sys.executable, "-m", "invglare.cli", "fit-batch", "fit.toml", "crowd/*.exr",
+           "--workers", "1", "--out-dir", str(out), "--cache-dir", str(tmp_path / "jax"),
+           "--no-progress"]  # fmt: skip
+    proc = subprocess.Popen(cmd, cwd=inside, env=env, stderr=subprocess.PIPE, text=True)
+    first = out / "batch" / "disk_00" / "params.json"
+    deadline = time.time() + 900
+    while not first.exists() and proc.poll() is None and time.time() < deadline:
+        time.sleep(0.2)
+    assert first.exists(), "the first photo never finished"
+    proc.send_signal(signal.SIGINT)
+    _, err = proc.communicate(timeout=120)
+    assert proc.returncode == 130, err
+    assert "interrupted" in err
+    folders = [p for p in (out / "batch").iterdir() if p.is_dir() and p.name[0] != "."]
+    done = [p for p in folders if (p / "params.json").is_file()]
+    assert done == folders and 1 <= len(done) < 4  # no visible folder is half-written
+    stamps = {p.name: (p / "params.json").stat().st_mtime_ns for p in done}
+
+    summary = run_fit_batch(inside / "fit.toml", ["crowd/*.exr"], out_dir=out, workers=2,
+                            progress=False, cache_dir=tmp_path / "jax")  # fmt: skip
+    assert summary.skipped == len(done) and summary.fitted == 4 - len(done)
+    assert [r.status for r in summary.rows] == ["ok"] * 4
+    for name, stamp in stamps.items():
+        assert (out / "batch" / name / "params.json").stat().st_mtime_ns == stamp
+    assert not [p for p in (out / "batch").iterdir() if re.match(r"^\..*\.(tmp|old)$", p.name)]
+    # Nothing left to do: the table is kept as it is.
+    md = (out / "batch" / "batch.md").stat().st_mtime_ns
+    again = run_fit_batch(inside / "fit.toml", ["crowd/*.exr"], out_dir=out, progress=False)
+    assert again.fitted == 0 and again.skipped == 4
+    assert (out / "batch" / "batch.md").stat().st_mtime_ns == md
+    assert FitResult.from_json(out / "batch" / "disk_03" / "params.json").converged
+
+
+# --------------------------------------------------------------------------------------
+# bad input: one clear line, exit status 2, before any work
+
+
+@pytest.mark.parametrize(
+    "args, message",
+    [
+        (["crowd/*.png"], r"the glob 'crowd/\*\.png' matches no photo"),
+        (["table.csv"], r"unknown column\(s\) 'exposure'; valid columns: photo, name"),
+        (["crowd/*.exr", "--vmap", "0"], "--vmap must be an integer >= 1"),
+        (["crowd/*.exr", "--scheduler", "localhost"], "not a scheduler address"),
+        (["crowd/*.exr", "--scheduler", "tcp://127.0.0.1:1", "--workers", "2"], "--workers starts"),
+    ],
+)
+def test_bad_input_is_one_clear_error(inside, args, message):
+    (inside / "table.csv").write_text("photo,exposure\ncrowd/disk_00.exr,1.0\n")
+    res = invoke("fit-batch", "fit.toml", *args)
+    assert res.exit_code == 2, res.output
+    assert re.search(message, res.output), res.output
+
+
+def test_an_unreachable_scheduler_fails_within_seconds(inside):
+    """Nothing listens at the address: a clear error after the connect timeout (10 s),
+    before the config is even loaded (the bound only guards against a hang)."""
+    t0 = time.perf_counter()
+    res = invoke("fit-batch", "fit.toml", "crowd/*.exr", "--scheduler", "tcp://127.0.0.1:9")
+    assert res.exit_code == 2, res.output
+    assert "cannot reach a Dask scheduler at tcp://127.0.0.1:9" in res.output
+    assert "dask scheduler" in res.output and "dask worker" in res.output
+    assert time.perf_counter() - t0 < 60.0
+
+
+def test_a_reference_fit_config_is_refused(inside):
+    res = invoke("fit-batch", ROOT / "fits" / "cie_A50_p1.toml", "crowd/*.exr")
+    assert res.exit_code == 2 and "fits a reference glare function" in res.output

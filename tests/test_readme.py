@@ -1,0 +1,200 @@
+"""Every command and Python block of the README runs as written.
+
+The README's fenced ``bash`` and ``python`` blocks are run section by section (a ``##``
+heading; its blocks in order, in one scratch copy of the repository's data folders, so that
+a block can read what an earlier one of its section wrote and nothing committed is
+overwritten), with `invglare` on the PATH running this checkout's package. The long ones
+run smaller, as the README says (its "Run the tests" paragraph): each change is listed in
+:data:`SMALLER` with the reason, and must apply. ``pip install`` steps are left to the
+environment and the test command to CI, which runs it verbatim (checked here against
+``.ci/run``). The README's one example of an error message is reproduced, and its
+``toml`` blocks parse (the model configs among them build).
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import shlex
+import shutil
+import subprocess
+import sys
+import tomllib
+from dataclasses import dataclass
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+README = ROOT / "README.md"
+
+#: Folders a README command reads (or writes, as the fit and sample reports), copied for
+#: each section.
+DATA = ("examples", "fits", "data_synthetic", "reports", "tests/golden")
+
+#: (what the README says, what the test runs, why smaller). Every entry must apply.
+SMALLER: tuple[tuple[str, str, str], ...] = (
+    (
+        "invglare fit fits/eye_daylight.toml",
+        "invglare fit fits/eye_daylight.toml --max-steps 2 --no-progress",
+        "the full fit (3 CPU minutes) is rerun by tests/fit/test_fit_cli.py",
+    ),
+    (
+        "invglare fit fits/cie_A50_p1.toml",
+        "invglare fit fits/cie_A50_p1.toml --max-steps 2 --no-progress",
+        "the reference fit's own tests are in tests/cie_study/",
+    ),
+    ("--frames 120", "--frames 4", "an animation's frames all run the same compiled scan"),
+    ("--frames 30", "--frames 4", "as above"),
+    ("psf_sequence(30, 10.0)", "psf_sequence(4, 10.0)", "as above"),
+    ("render_sequence(m, im, 30,", "render_sequence(m, im, 4,", "as above"),
+    ("--resume --steps 2000", "--resume --steps 1604", "4 steps more than the committed chain"),
+    ("--restart", "--restart --steps 4 --walkers 16", "a new chain of 4 steps"),
+)
+
+#: Steps run by the environment, not by this test: installs, and the test command itself.
+NOT_RUN = (re.compile(r"^pip install "), re.compile(r"^python -m pytest\b"))
+
+
+@dataclass(frozen=True)
+class Block:
+    section: str
+    lang: str
+    line: int
+    text: str
+
+
+def readme_blocks(text: str) -> list[Block]:
+    """The fenced blocks of the README with the ``##`` section each stands in."""
+    blocks, section = [], "top"
+    lines = text.splitlines()
+    i = 0
+    while i < len(lines):
+        line = lines[i]
+        if line.startswith("## "):
+            section = line[3:].strip()
+        fence = re.match(r"^```(\w*)\s*$", line)
+        if fence:
+            j = i + 1
+            while not lines[j].startswith("```"):
+                j += 1
+            blocks.append(Block(section, fence.group(1), i + 1, "\n".join(lines[i + 1 : j])))
+            i = j
+        i += 1
+    return blocks
+
+
+BLOCKS = readme_blocks(README.read_text(encoding="utf-8"))
+RUNNABLE = [b for b in BLOCKS if b.lang in ("bash", "python")]
+SECTIONS = list(dict.fromkeys(b.section for b in RUNNABLE))
+
+
+def shell_steps(block: Block) -> list[str]:
+    """A bash block's commands (comments dropped), each `&&` chain split into its steps."""
+    steps = []
+    for line in block.text.splitlines():
+        command = line.split(" #", 1)[0].strip()
+        if command:
+            steps += [part.strip() for part in command.split("&&")]
+    return steps
+
+
+def smaller(text: str) -> str:
+    for said, run, _why in SMALLER:
+        text = text.replace(said, run)
+    return text
+
+
+def test_every_smaller_size_applies():
+    """Each entry of SMALLER changes a command the README has (none has rotted away)."""
+    text = "\n".join(b.text for b in RUNNABLE)
+    for said, _run, why in SMALLER:
+        assert said in text, f"{said!r} ({why}) is no longer in the README"
+
+
+def test_the_readme_test_command_is_what_ci_runs():
+    (test_block,) = [b for b in RUNNABLE if "python -m pytest" in b.text]
+    ci = (ROOT / ".ci" / "run").read_text().splitlines()
+    assert test_block.text.strip() in ci
+
+
+def test_the_first_command_installs_no_torch():
+    """The main job's install is the package's own dependencies, which do not name torch."""
+    first = RUNNABLE[0]
+    assert shell_steps(first)[0] == "pip install -e ."
+    deps = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]["dependencies"]
+    assert not [d for d in deps if re.match(r"torch\b", d)]
+
+
+@pytest.fixture
+def scratch(tmp_path):
+    """A copy of the data folders and an `invglare` on the PATH running this checkout."""
+    work = tmp_path / "repo"
+    for name in DATA:
+        shutil.copytree(ROOT / name, work / name)
+    bin_dir = tmp_path / "bin"
+    bin_dir.mkdir()
+    shim = bin_dir / "invglare"
+    shim.write_text(f'#!/bin/sh\nexec {shlex.quote(sys.executable)} -m invglare.cli "$@"\n')
+    shim.chmod(0o755)
+    env = dict(os.environ)
+    env["PATH"] = f"{bin_dir}{os.pathsep}{env['PATH']}"
+    env["PYTHONPATH"] = os.pathsep.join([str(ROOT), env.get("PYTHONPATH", "")]).rstrip(os.pathsep)
+    env["OMP_WAIT_POLICY"] = "PASSIVE"  # torch and JAX share the CPU (README, PyTorch)
+    return work, env
+
+
+def _run(args: list[str], work: Path, env: dict, what: str) -> None:
+    done = subprocess.run(args, cwd=work, env=env, capture_output=True, text=True, timeout=1200)
+    assert done.returncode == 0, (
+        f"{what} failed (exit {done.returncode}):\n{done.stdout[-3000:]}\n{done.stderr[-3000:]}"
+    )
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("section", SECTIONS)
+def test_readme_section_runs(section, scratch):
+    work, env = scratch
+    ran = 0
+    for block in (b for b in RUNNABLE if b.section == section):
+        where = f"README.md:{block.line} ({section})"
+        if block.lang == "python":
+            script = work / f"readme_{block.line}.py"
+            script.write_text(smaller(block.text) + "\n")
+            _run([sys.executable, str(script)], work, env, where)
+            ran += 1
+            continue
+        for step in shell_steps(block):
+            if any(p.match(step) for p in NOT_RUN):
+                continue
+            _run(["bash", "-euo", "pipefail", "-c", smaller(step)], work, env, f"{where}: {step}")
+            ran += 1
+    assert ran > 0 or section == "top"
+
+
+def test_the_error_example_is_what_the_command_prints(tmp_path):
+    """The README's `invglare psf bad.toml` line, with circle.toml's disk key misspelt."""
+    (example,) = [b for b in BLOCKS if b.lang == "" and b.text.startswith("$ invglare")]
+    command, expected = example.text.splitlines()
+    config = (ROOT / "examples" / "circle.toml").read_text()
+    assert "diameter_mm = 4.0" in config
+    (tmp_path / "bad.toml").write_text(config.replace("diameter_mm = 4.0", "diameter = 4.0", 1))
+    done = subprocess.run(
+        [sys.executable, "-m", "invglare.cli", *shlex.split(command)[2:]],
+        cwd=tmp_path,
+        capture_output=True,
+        text=True,
+        env={**os.environ, "PYTHONPATH": str(ROOT)},
+    )
+    assert done.returncode == 2
+    assert done.stderr.strip().splitlines()[-1] == expected
+
+
+@pytest.mark.parametrize("block", [b for b in BLOCKS if b.lang == "toml"], ids=lambda b: b.line)
+def test_readme_toml_blocks_parse_and_model_configs_build(block):
+    from invglare.config.model import build_model
+
+    config = tomllib.loads(block.text)
+    model = config.get("model", {})
+    if "kind" in model and "config" not in model:
+        build_model(config, base_dir=ROOT / "examples")
