@@ -156,10 +156,13 @@ def test_select_patterns_skip_and_fit():
     assert cases == [] and fits == ["fit_daylight_eye"]
     cases, fits = select(["sample"])
     assert cases == [] and fits == ["sample_daylight_eye"]
-    cases, fits = select(["batch"])
+    # "batch" alone also names the quad case quad_spectral_batch (and its floors).
+    cases, fits = select(["batch_population"])
     assert cases == [] and fits == ["batch_population"]
+    cases, fits = select(["batch"])
+    assert "quad_spectral_batch" in {c.name for c in cases} and fits == ["batch_population"]
     # Everything but the fit, the sampling and the batch.
-    cases, fits = select([], ["fit", "sample", "batch"])
+    cases, fits = select([], ["fit", "sample", "batch_population"])
     assert fits == [] and {c.name for c in cases} == {c.name for c in CASES}
     # Skipping never drops the floors the ratios need.
     cases, _ = select(["eye"], ["fft"])
