@@ -190,6 +190,17 @@ os.chdir(sys.argv[2])
 from typer.testing import CliRunner
 from invglare.cli import app
 runner = CliRunner()
+def peak_rss():
+    # VmHWM is this program's own peak: ru_maxrss would keep the forking pytest worker's
+    # (a worker several GB deep into the suite) across fork and exec.
+    try:
+        with open("/proc/self/status") as status:
+            for row in status:
+                if row.startswith("VmHWM:"):
+                    return int(row.split()[1]) * 1024
+    except OSError:
+        pass
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
 for line in sys.stdin:
     case = json.loads(line)
     t0 = time.perf_counter()
@@ -199,7 +210,7 @@ for line in sys.stdin:
         tb = "".join(traceback.format_exception(r.exception))
     print(json.dumps(dict(id=case["id"], code=r.exit_code, stderr=r.stderr, stdout=r.stdout,
                           traceback=tb, seconds=time.perf_counter() - t0,
-                          maxrss=resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024)),
+                          maxrss=peak_rss())),
           flush=True)
 """
 

@@ -478,7 +478,7 @@ def test_scaled_copies_against_exact_per_wavelength_fresnel_psfs(model, record_p
         exact = np.asarray(exact_rgb(aperture, distance))
         l1, peak = errors[factor] = relative_errors(scaled, exact)
         fresnel_number = radius**2 / (575e-6 * distance)
-        record_property(f"scaled_copies_error_NF{fresnel_number:.2f}", (l1, peak))
+        record_property(f"scaled_copies_error_NF{fresnel_number:.2f}", f"{l1:.4g}, {peak:.4g}")
         print(
             f"scaled copies vs exact Fresnel at N_F = {fresnel_number:.2f} (575 nm): "
             f"relative L1 {l1:.4f}, peak {peak:.4f}"
