@@ -140,7 +140,14 @@ def test_a_batch_interrupted_by_ctrl_c_resumes_without_refitting(inside, tmp_pat
     cmd = [sys.executable, "-m", "invglare.cli", "fit-batch", "fit.toml", "crowd/*.exr",
            "--workers", "1", "--out-dir", str(out), "--cache-dir", str(tmp_path / "jax"),
            "--no-progress"]  # fmt: skip
-    proc = subprocess.Popen(cmd, cwd=inside, env=env, stderr=subprocess.PIPE, text=True)
+    # A run started in the background by a shell (`pytest ... &`) inherits SIGINT ignored,
+    # which Python keeps: the child gets back the default a terminal's Ctrl-C meets.
+    def default_sigint():
+        signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+    proc = subprocess.Popen(
+        cmd, cwd=inside, env=env, stderr=subprocess.PIPE, text=True, preexec_fn=default_sigint
+    )
     first = out / "batch" / "disk_00" / "params.json"
     deadline = time.time() + 900
     while not first.exists() and proc.poll() is None and time.time() < deadline:
