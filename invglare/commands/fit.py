@@ -139,6 +139,19 @@ def _fit(setup, forward, label: str, progress: bool, **kwargs):
     return result
 
 
+def precheck_fit_config(config: Path) -> dict[str, Any]:
+    """The fit config's tables, its TOML and section names checked before JAX loads (which
+    takes seconds), so that a typo is reported at once. **Raises:** ConfigError."""
+    from invglare.config.fit import SECTIONS, is_reference_fit
+    from invglare.config.section import check_sections
+    from invglare.files.toml import load_toml
+
+    tables = load_toml(config)
+    if not is_reference_fit(tables):  # a reference fit's sections: invglare.cie_study.config
+        check_sections(tables, SECTIONS, str(config))
+    return tables
+
+
 def run_fit(
     config: Path,
     out_dir: Path | None = None,
@@ -147,23 +160,21 @@ def run_fit(
     progress: bool = True,
 ) -> Path:
     """Run the fit a config describes and write its report. **Returns:** the report folder."""
-    import jax
-
-    from invglare.cie_study.config import is_reference_fit
     from invglare.commands import options
-    from invglare.config.fit import load_fit
+    from invglare.config.fit import is_reference_fit, load_fit
     from invglare.files.atomic import folder_lock
     from invglare.files.outputs import output_folder
-    from invglare.files.toml import load_toml
 
     options.count(n_starts, "--n-starts")
     options.count(max_steps, "--max-steps")
     if out_dir is not None:
         output_folder(out_dir, "--out-dir", replaced=True)
-    if is_reference_fit(load_toml(config)):
+    if is_reference_fit(precheck_fit_config(config)):
         return run_reference_fit(
             config, out_dir=out_dir, n_starts=n_starts, max_steps=max_steps, progress=progress
         )
+    import jax
+
     t0 = time.perf_counter()
     with jax.enable_x64(True), logged_deprecations(config):
         setup = load_fit(config, out_dir=out_dir, n_starts=n_starts, max_steps=max_steps)

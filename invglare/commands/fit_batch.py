@@ -88,7 +88,6 @@ def run_fit_batch(
     from invglare.files.atomic import folder_lock
     from invglare.files.outputs import output_folder
     from invglare.files.toml import load_toml
-    from invglare.fit import batch as engine
 
     t0 = time.perf_counter()
     options.count(vmap, "--vmap")
@@ -97,18 +96,20 @@ def run_fit_batch(
     options.count(max_steps, "--max-steps")
     if out_dir is not None:
         output_folder(out_dir, "--out-dir")
-    if scheduler is not None:
-        engine.check_address(scheduler)
-        if workers is not None:
-            raise ConfigError("--workers starts a local cluster; with --scheduler, start workers "
-                              "with `dask worker ADDRESS`")  # fmt: skip
     config = Path(config)
     tables = load_toml(config)
     if is_reference_fit(tables):
         raise ConfigError(
             f"{config} fits a reference glare function, not photos; use invglare fit"
         )
-    check_sections(tables, SECTIONS, str(config))
+    check_sections(tables, SECTIONS, str(config))  # before JAX loads (seconds)
+    from invglare.fit import batch as engine
+
+    if scheduler is not None:
+        engine.check_address(scheduler)
+        if workers is not None:
+            raise ConfigError("--workers starts a local cluster; with --scheduler, start workers "
+                              "with `dask worker ADDRESS`")  # fmt: skip
     jobs = read_photos(photos)
     name, root = read_fit_section(tables, config, out_dir)
     batch_dir = root / "batch"

@@ -56,10 +56,8 @@ def run_sample(
 
     **Returns:** the posterior folder (``reports/NAME/posterior``).
     """
-    import jax
-
     from invglare.commands import options
-    from invglare.commands.fit import logged_deprecations
+    from invglare.commands.fit import logged_deprecations, precheck_fit_config
     from invglare.config.fit import load_fit
     from invglare.config.sample import read_sample_section
     from invglare.files.atomic import folder_lock
@@ -82,7 +80,10 @@ def run_sample(
         raise ConfigError(f"--batch-size must be an integer >= 1 or 'auto', got {batch_size!r}")
     if out_dir is not None:
         output_folder(out_dir, "--out-dir", replaced=True)
+    precheck_fit_config(Path(config))
     opts = read_sample_section(Path(config))
+    import jax
+
     if steps is not None:
         opts["steps"] = int(steps)
     if walkers is not None:

@@ -28,6 +28,33 @@ def test_help_is_instant_and_does_not_import_jax():
     assert invoke("--help").exit_code == 0
 
 
+#: Runs a command in this process and says whether JAX was loaded when it ended.
+TYPO_PROBE = """
+import sys, time
+from invglare.cli import main
+sys.argv = ["invglare", *sys.argv[1:]]
+t0 = time.perf_counter()
+try:
+    main()
+except SystemExit as e:
+    print(e.code, "jax" in sys.modules, time.perf_counter() - t0)
+"""
+
+
+@pytest.mark.parametrize("command", ["fit", "sample", "fit-batch"])
+def test_a_misspelt_section_is_named_before_jax_loads(command, tmp_path):
+    """A typo in a fit config is reported before JAX is imported (which takes seconds)."""
+    config = tmp_path / "fit.toml"
+    config.write_text('[target]\nfile = "photo.exr"\n\n[modle]\nconfig = "eye.toml"\n')
+    args = [command, str(config)] + (["photo.exr"] if command == "fit-batch" else [])
+    out = subprocess.run([sys.executable, "-c", TYPO_PROBE, *args], capture_output=True,
+                         text=True, check=True, cwd=tmp_path)  # fmt: skip
+    code, jax_loaded, seconds = out.stdout.split()
+    assert "unknown section [modle]" in out.stderr, out.stderr
+    assert (code, jax_loaded) == ("2", "False"), out.stderr
+    assert float(seconds) < 10.0  # a generous bound: what is checked is the import order
+
+
 def test_version_is_the_package_version():
     """`invglare --version` prints the version pyproject.toml declares, without JAX."""
     import tomllib
