@@ -81,13 +81,12 @@ def run_fit_batch(
     photos that cannot be found, a bad config, or a scheduler that cannot be reached.
     """
     from invglare.commands import options
+    from invglare.commands.fit import precheck_fit_config
     from invglare.config.batch import read_photos
-    from invglare.config.fit import SECTIONS, is_reference_fit, read_fit_section
-    from invglare.config.section import check_sections
+    from invglare.config.fit import is_reference_fit, read_fit_section
     from invglare.errors import ConfigError
     from invglare.files.atomic import folder_lock
     from invglare.files.outputs import output_folder
-    from invglare.files.toml import load_toml
 
     t0 = time.perf_counter()
     options.count(vmap, "--vmap")
@@ -97,12 +96,11 @@ def run_fit_batch(
     if out_dir is not None:
         output_folder(out_dir, "--out-dir")
     config = Path(config)
-    tables = load_toml(config)
+    tables = precheck_fit_config(config)  # before JAX loads (seconds)
     if is_reference_fit(tables):
         raise ConfigError(
             f"{config} fits a reference glare function, not photos; use invglare fit"
         )
-    check_sections(tables, SECTIONS, str(config))  # before JAX loads (seconds)
     from invglare.fit import batch as engine
 
     if scheduler is not None:
