@@ -41,6 +41,11 @@ SMALLER: tuple[tuple[str, str, str], ...] = (
         "the full fit (3 CPU minutes) is rerun by tests/fit/test_fit_cli.py",
     ),
     (
+        "invglare fit fits/eye_daylight_other_draws.toml",
+        "invglare fit fits/eye_daylight_other_draws.toml --max-steps 2 --no-progress",
+        "the full fit (3 CPU minutes) is rerun by tests/fit/test_other_draws.py",
+    ),
+    (
         "invglare fit fits/cie_A50_p1.toml",
         "invglare fit fits/cie_A50_p1.toml --max-steps 2 --no-progress",
         "the reference fit's own tests are in tests/cie_study/",

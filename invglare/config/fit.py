@@ -48,6 +48,8 @@ pixels = 1.0
 
 [view_options.angular]           # options of a view (see invglare.fit.views)
 n_bins = 72
+draws = 32                       # statistics views: weigh by the scatter between 32 eyes
+model_draws = 4                  #   (an eye the model did not draw); predict the mean of 4
 
 [[stage]]                        # optional stages run before the final one, in order, each
 views = { radial = 1.0, angular = 1.0 }   # from the best result of the one before: e.g.

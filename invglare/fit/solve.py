@@ -914,7 +914,11 @@ class _FitRun:
             sigma = np.sqrt(variance + 1e-30)
             saturated = np.asarray(fn_final.saturated)
             residual_map = np.where(saturated, 0.0, (target_arr - expected) / sigma)
-            optimum = _check_optimum(fn_final, best_latent, space)
+            # A fit of another eye's statistics is not at the pixel likelihood of the
+            # model's own draw, nor should it be.
+            optimum = (
+                None if fn_final.draw_whitened else _check_optimum(fn_final, best_latent, space)
+            )
             reduced = loss / (n_res - p) if n_res > p else math.nan
             obs = fn_final.forward.obs
             flags = fit_flags(

@@ -49,6 +49,7 @@ from invglare.fit.observation import Forward
 from invglare.fit.params import ParameterSpace
 from invglare.fit.result import FitResult
 from invglare.fit.solve import FitProgress, fit, fit_many
+from invglare.fit.trust import parameter_flags
 from invglare.fit.views import ResidualFn, make_residual_fn
 
 
@@ -295,8 +296,8 @@ class _Plan:
         result.values.update(self.held)
         if is_round:
             # A round only seeds its stage: its steps and time count, not its records.
-            self.timing["compile"] += float(result.timing_s.get("compile", 0.0))
-            self.timing["solve"] += float(result.timing_s.get("solve", 0.0))
+            for key in self.timing:
+                self.timing[key] += float(result.timing_s.get(key, 0.0))
             self.n_steps += result.n_steps
             self.origin = self.origin[[result.best_start]]
             self.starts = np.asarray([[result.values[p] for p in paths]])
@@ -387,10 +388,21 @@ def _scatter_errors(result: FitResult, space, template, target, views, options) 
     for p, var in zip(space.paths, np.diag(cov), strict=True):
         result.stderr[p] = float(np.sqrt(var)) if var >= 0 else math.nan
     result.covariance_scale = 1.0
-    result.message += (
+    # The parameters' flags follow the new errors; the fit's own flags stay.
+    bounds = {q.path: (q.lower, q.upper, q.init) for q in space.all}
+    kept = [f for f in result.flags if "path" not in f or f["path"] not in space.paths]
+    result.flags = kept + parameter_flags(
+        space.paths, result.values, result.stderr, bounds, _subset(result.truth, space.paths)
+    )
+    message = re.sub(r"; \d+ flags?: .*$", "", result.message)
+    message += (
         f"; standard errors from {_draws(options)} simulated eyes with these parameters "
         "(the scatter between draws and the noise)"
     )
+    if result.flags:
+        n = len(result.flags)
+        message += f"; {n} flag{'s' if n > 1 else ''}: {result.flags[0]['message']}"
+    result.message = message
 
 
 def _numbered(progress, k: int, n_plan: int):

@@ -267,6 +267,19 @@ def fit_flags(
                     "model and the noise model are right",
                 }
             )
+    return flags + parameter_flags(paths, values, stderr, bounds, truth)
+
+
+def parameter_flags(
+    paths: Sequence[str],
+    values: Mapping[str, float],
+    stderr: Mapping[str, float],
+    bounds: Mapping[str, tuple[float, float, float]],
+    truth: Mapping[str, float] | None,
+) -> list[dict[str, Any]]:
+    """The flags of single parameters (`truth_beyond_3se`, `at_bound`, `stderr_undefined`):
+    :func:`fit_flags`'s last part, rerun when a fit's standard errors are replaced."""
+    flags: list[dict[str, Any]] = []
     for p in paths:
         v, e = float(values[p]), float(stderr[p])
         if truth and p in truth:

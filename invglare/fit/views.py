@@ -719,6 +719,13 @@ class ResidualFn(eqx.Module):
             and self.weights[0] == 1.0
         )
 
+    @property
+    def draw_whitened(self) -> bool:
+        """Whether a statistics view is whitened by the scatter between eyes (`draws`): the
+        photo is then taken as another eye than the model's draw, so the pixel likelihood of
+        that draw is not this fit's likelihood."""
+        return any(getattr(v, "whiten", None) is not None for v in self.views)
+
     def stabilised_views(self) -> tuple[str, ...]:
         """Names of the pixel views in a variance-stabilised domain (starts only)."""
         return tuple(

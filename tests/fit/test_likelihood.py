@@ -30,7 +30,7 @@ from invglare.fit.deviance import pixel_log_likelihood_gradient
 from invglare.fit.photos import solve_photos
 from invglare.fit.report import ReportInfo, write_report
 from invglare.fit.sample import make_log_posterior, sample
-from invglare.fit.trust import chi2_cause, fit_flags
+from invglare.fit.trust import chi2_cause, fit_flags, parameter_flags
 
 GAIN, READ = 2.0, 3.0
 SIGMA, FLUX, BACKGROUND, DX, DY = 1.8, 3e4, 20.0, 0.3, -0.2
@@ -283,6 +283,13 @@ def test_flags_truth_bounds_stderr_and_optimum():
     assert _flags(reduced_chi2=1.04) == [] and _flags(reduced_chi2=3.0, normalised=False) == []
     (flag,) = _flags(reduced_chi2=1.5)
     assert flag["kind"] == "reduced_chi2" and flag["cause"] == "unknown"
+    # The parameters' own flags alone (rerun when a fit's errors are replaced).
+    args = (["a", "b"], {"a": 1.995, "b": 5.0}, {"a": 0.1, "b": 0.5})
+    bounds = {"a": (0.0, 2.0, 1.0), "b": (0.0, math.inf, 4.0)}
+    own = parameter_flags(*args, bounds, {"b": 7.0})
+    assert [(f["kind"], f["path"]) for f in own] == [("at_bound", "a"), ("truth_beyond_3se", "b")]
+    every = _flags(values=args[1], optimum=stalled, truth={"b": 7.0})
+    assert own == [f for f in every if "path" in f] and every[0]["kind"] == "not_at_optimum"
 
 
 def test_reduced_chi2_causes_are_told_apart():
