@@ -75,7 +75,7 @@ from invglare.errors import ConfigError
 from invglare.fit.observation import Forward
 from invglare.fit.params import ParameterSpace
 from invglare.fit.result import FitResult
-from invglare.fit.trust import fit_flags, optimum_check
+from invglare.fit.trust import fit_flags, flags_summary, optimum_check
 from invglare.fit.views import PixelView, ResidualFn, make_residual_fn
 
 SOLVERS = ("lm", "bfgs")
@@ -952,8 +952,7 @@ class _FitRun:
             f"{'; ' + where if where else ''}){note}"
         )
         reduced = loss / (n_res - p) if n_res > p else math.nan
-        if flags:
-            summary += f"; {len(flags)} flag{'s' if len(flags) > 1 else ''}: {flags[0]['message']}"
+        summary += flags_summary(flags)
         return FitResult(
             paths=list(space.paths),
             values=values,

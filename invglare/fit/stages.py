@@ -49,7 +49,7 @@ from invglare.fit.observation import Forward
 from invglare.fit.params import ParameterSpace
 from invglare.fit.result import FitResult
 from invglare.fit.solve import FitProgress, fit, fit_many
-from invglare.fit.trust import parameter_flags
+from invglare.fit.trust import flags_summary, parameter_flags
 from invglare.fit.views import ResidualFn, make_residual_fn
 
 
@@ -394,15 +394,13 @@ def _scatter_errors(result: FitResult, space, template, target, views, options) 
     result.flags = kept + parameter_flags(
         space.paths, result.values, result.stderr, bounds, _subset(result.truth, space.paths)
     )
-    message = re.sub(r"; \d+ flags?: .*$", "", result.message)
-    message += (
-        f"; standard errors from {_draws(options)} simulated eyes with these parameters "
+    # The message's flag summary (fit()'s, always last) is replaced by the new one.
+    result.message = (
+        re.sub(r"; \d+ flags?: .*$", "", result.message)
+        + f"; standard errors from {_draws(options)} simulated eyes with these parameters "
         "(the scatter between draws and the noise)"
+        + flags_summary(result.flags)
     )
-    if result.flags:
-        n = len(result.flags)
-        message += f"; {n} flag{'s' if n > 1 else ''}: {result.flags[0]['message']}"
-    result.message = message
 
 
 def _numbered(progress, k: int, n_plan: int):

@@ -322,6 +322,14 @@ def parameter_flags(
     return flags
 
 
+def flags_summary(flags: Sequence[Mapping[str, Any]]) -> str:
+    """The tail a fit's message gets for its flags: how many, and the first (most serious)
+    one's message; empty when there are none."""
+    if not flags:
+        return ""
+    return f"; {len(flags)} flag{'s' if len(flags) > 1 else ''}: {flags[0]['message']}"
+
+
 #: Said by results written before flags existed when a converged fit's residuals were far
 #: above the noise; :func:`poor_fit` still reads it.
 LEGACY_POOR_FIT = "the model does not explain the photo"
