@@ -96,6 +96,9 @@ def run_export_kernel(
     brightest pixel is not its centre.
     """
     from invglare.commands import options
+    from invglare.config.section import precheck_model_config
+
+    config = precheck_model_config(config_path)  # a typo is reported before JAX loads
     from invglare.render.kernels import check_kernel_request
 
     with options.named("--for"):
@@ -109,13 +112,11 @@ def run_export_kernel(
     from invglare.commands.render import psf_at_scale
     from invglare.config.model import build_model
     from invglare.files.exr import write_exr
-    from invglare.files.toml import load_toml
     from invglare.render import kernels
 
     lams = options.wavelengths(wavelengths)
     if npix is not None:  # the kernel is RGB, resampled from a PSF at least as large
         options.raster(npix, "--npix", channels=3, copies=4)
-    config = load_toml(config_path)
     model = build_model(
         config, base_dir=Path(config_path).parent, wavelengths_nm=lams, source=str(config_path)
     )

@@ -7,7 +7,6 @@ from pathlib import Path
 
 import numpy as np
 
-from invglare._core.colour import rec709_luminance_np
 from invglare.errors import NumericalError
 
 log = logging.getLogger("invglare")
@@ -22,14 +21,17 @@ def run_psf(
     half: bool,
     png: Path | None,
 ) -> None:
+    from invglare.config.section import precheck_model_config
+
+    config = precheck_model_config(config_path)  # a typo is reported before JAX loads
     import jax
 
+    from invglare._core.colour import rec709_luminance_np
     from invglare._core.memory import check_compiled_memory, check_memory
     from invglare.commands import options
     from invglare.config.model import build_model
     from invglare.files.exr import write_exr
     from invglare.files.outputs import output_file
-    from invglare.files.toml import load_toml
 
     out = output_file(out, "--out", (".exr",))
     png = None if png is None else output_file(png, "--png", (".png",))
@@ -45,7 +47,6 @@ def run_psf(
             2 * 4.0 * side**2 * n_lams,
             f"{n_lams} wavelengths (--wavelengths-nm) of a {side}x{side} PSF each",
         )
-    config = load_toml(config_path)
     with options.given(
         ("--npix", npix, "npix"),
         ("--pixel-scale-deg", pixel_scale_deg, "pixel_scale_deg"),

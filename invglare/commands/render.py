@@ -82,6 +82,9 @@ def run_render(
     depth: Path | None = None,
     seed: int = 0,
 ) -> None:
+    from invglare.config.section import precheck_model_config
+
+    precheck_model_config(model_path)  # a typo is reported before JAX loads
     import jax.numpy as jnp
 
     from invglare.render import convolve_psf, replace_with_billboards, validate_scene
@@ -329,9 +332,9 @@ def _load_model(model_path: Path, grid_of=None):
     """The model of a config file; `grid_of(kind)` gives ``npix`` / ``pixel_scale_deg``
     overrides for a registered model kind (the file is read once)."""
     from invglare.config.model import build_model, config_kind
-    from invglare.files.toml import load_toml
+    from invglare.config.section import precheck_model_config
 
-    config = load_toml(model_path)
+    config = precheck_model_config(model_path)
     grid = grid_of(config_kind(config, str(model_path))) if grid_of is not None else {}
     return build_model(config, base_dir=model_path.parent, source=str(model_path), **grid)
 

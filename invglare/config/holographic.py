@@ -11,7 +11,7 @@ import numpy as np
 from invglare._core.grids import check_wavelengths_nm
 from invglare.config.eye import eye_from_config
 from invglare.config.raster import KEEP_GRID, GridRequest, square_npix
-from invglare.config.section import Section, check_sections
+from invglare.config.section import MODEL_SECTIONS, Section, check_sections
 from invglare.errors import ConfigError, PhysicsRangeError, prefixed
 from invglare.models.holographic import (
     _GEOMETRY_KEYS,
@@ -128,7 +128,7 @@ def holographic_from_config(
     small, a lens or tear film the grid aliases).
     """
     del base_dir  # no file references
-    check_sections(config, ("model", "output", "spectrum"), source)
+    check_sections(config, MODEL_SECTIONS, source)
     npix = square_npix(grid.npix, source)
     pixel_scale_deg, wavelengths_nm = grid.pixel_scale_deg, grid.wavelengths_nm
     model = Section(config.get("model", {}), "model")

@@ -80,7 +80,7 @@ from invglare._core.memory import check_psf_memory
 from invglare.aperture import Aperture
 from invglare.config.camera import camera_from_config
 from invglare.config.eye import eye_from_config
-from invglare.config.section import Section, check_sections
+from invglare.config.section import MODEL_SECTIONS, Section, check_sections
 from invglare.config.shapes import shape_from_config
 from invglare.errors import ConfigError, prefixed
 from invglare.models.aperture_psf import AperturePSF
@@ -108,9 +108,6 @@ KEEP_GRID = GridRequest()
 
 #: The kinds this reader builds.
 RASTER_KINDS = ("aperture", "eye", "camera")
-SECTIONS = ("model", "output", "spectrum")
-
-
 def square_npix(npix: int | tuple[int, int] | None, source: str) -> int | None:
     """A PSF model's output size from an override that may be a square ``(n, n)``."""
     if npix is None or isinstance(npix, int):
@@ -161,7 +158,7 @@ def read_raster_model(
     `grid` overrides the config's output grid and wavelengths; its `npix` may be
     ``(n, n)`` (the grid of a square photo). See the module docstring for the schema.
     """
-    check_sections(config, SECTIONS, source)
+    check_sections(config, MODEL_SECTIONS, source)
     npix = square_npix(grid.npix, source)
     pixel_scale_deg, wavelengths_nm = grid.pixel_scale_deg, grid.wavelengths_nm
     model = Section(config["model"], "model")

@@ -2,12 +2,14 @@
 
 from __future__ import annotations
 
+import os
 from collections.abc import Callable
 from typing import Any
 
 import numpy as np
 
-from invglare.errors import ConfigError, InputDataError, PhysicsRangeError
+from invglare.errors import ConfigError, InputDataError, PhysicsRangeError, prefixed
+from invglare.files.toml import load_toml
 
 _TYPE_NAMES = {int: "an integer", float: "a number", str: "a string", bool: "true or false"}
 
@@ -185,3 +187,21 @@ def check_sections(config: dict[str, Any], valid: tuple[str, ...], source: str) 
             raise ConfigError(
                 f"{source}: unknown section [{key}]; valid sections: {', '.join(valid)}"
             )
+
+
+#: The top-level tables of a model config (each kind's reader may accept fewer).
+MODEL_SECTIONS = ("model", "output", "spectrum")
+
+
+def precheck_model_config(path: str | os.PathLike[str]) -> dict[str, Any]:
+    """A model config's TOML, its top-level tables and its ``model.kind`` checked before
+    JAX loads (which takes seconds), so that a typo is reported at once; the kind's own
+    reader checks the keys later. **Returns:** the parsed config. **Raises:** ConfigError.
+    """
+    config = load_toml(path)
+    check_sections(config, MODEL_SECTIONS, str(path))
+    if "model" not in config:
+        raise ConfigError(f"{path}: no [model] section")
+    with prefixed(str(path)):
+        Section(config["model"], "model").get("kind", str, required=True)
+    return config

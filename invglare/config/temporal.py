@@ -11,7 +11,7 @@ import numpy as np
 from invglare._core.memory import check_psf_memory
 from invglare.config.eye import eye_from_config
 from invglare.config.raster import KEEP_GRID, GridRequest, square_npix
-from invglare.config.section import Section, check_sections
+from invglare.config.section import MODEL_SECTIONS, Section, check_sections
 from invglare.dynamics import (
     Accommodation,
     EyeDynamics,
@@ -128,7 +128,7 @@ def temporal_from_config(
     **Raises:** `ConfigError` naming the key for unknown keys, wrong types or choices;
     `PhysicsRangeError` for values out of range.
     """
-    check_sections(config, ("model", "output", "spectrum"), source)
+    check_sections(config, MODEL_SECTIONS, source)
     npix = square_npix(grid.npix, source)
     pixel_scale_deg, wavelengths_nm = grid.pixel_scale_deg, grid.wavelengths_nm
     model = Section(config.get("model", {}), "model")

@@ -55,6 +55,33 @@ def test_a_misspelt_section_is_named_before_jax_loads(command, tmp_path):
     assert float(seconds) < 10.0  # a generous bound: what is checked is the import order
 
 
+#: A model config with a misspelt section, and one whose [model] has no kind.
+MODEL_TYPOS = {
+    "unknown section [ouput]": '[model]\nkind = "aperture"\n\n[ouput]\nnpix = 64\n',
+    "needs the key 'kind'": '[model]\nknid = "aperture"\n',
+}
+
+
+@pytest.mark.parametrize("typo", sorted(MODEL_TYPOS))
+@pytest.mark.parametrize("command", ["psf", "render", "export-kernel"])
+def test_a_model_config_typo_is_named_before_jax_loads(command, typo, tmp_path):
+    """psf, render and export-kernel check a model config's tables before importing JAX."""
+    config = tmp_path / "model.toml"
+    config.write_text(MODEL_TYPOS[typo])
+    args = {
+        "psf": ["psf", str(config)],
+        "render": ["render", "scene.exr", "--model", str(config), "--out", "out.exr"],
+        "export-kernel": ["export-kernel", str(config), "--for", "blender", "--out", "k.exr"],
+    }[command]
+    out = subprocess.run([sys.executable, "-c", TYPO_PROBE, *args], capture_output=True,
+                         text=True, check=True, cwd=tmp_path)  # fmt: skip
+    code, jax_loaded, seconds = out.stdout.split()
+    assert typo in out.stderr and str(config) in out.stderr, out.stderr
+    assert (code, jax_loaded) == ("2", "False"), out.stderr
+    assert float(seconds) < 10.0  # a generous bound: what is checked is the import order
+    assert not any(tmp_path.glob("*.exr"))  # nothing was written
+
+
 def test_version_is_the_package_version():
     """`invglare --version` prints the version pyproject.toml declares, without JAX."""
     import tomllib
