@@ -18,6 +18,7 @@ import typer.core
 
 from invglare._core.allocator import retain_freed_memory
 from invglare.errors import InvglareError
+from invglare.files.outputs import RUNS_DIR
 
 #: The click (or typer's own copy of click) exception behind every usage error.
 _CLICK_ERROR = next(c for c in typer.BadParameter.__mro__ if c.__name__ == "ClickException")
@@ -248,9 +249,9 @@ def gallery(
             "eye without lashes, a 6-blade camera with and without a cross-screen filter."
         ),
     ] = None,
-    out_dir: Annotated[Path, typer.Option(help="Where gallery.md and gallery/*.png go.")] = Path(
-        "reports"
-    ),
+    out_dir: Annotated[
+        Path, typer.Option(help="Where gallery.md and gallery/*.png go (the committed: reports).")
+    ] = RUNS_DIR,
     scene: Annotated[
         str, typer.Option(help="Bundled scene rendered with each PSF.")
     ] = "street_lights_at_night",
@@ -293,9 +294,9 @@ def bench(
         list[str] | None,
         typer.Argument(help="Run only cases whose names contain these (e.g. psf, eye, fit)."),
     ] = None,
-    out_dir: Annotated[Path, typer.Option(help="Where bench.md and bench.json go.")] = Path(
-        "reports"
-    ),
+    out_dir: Annotated[
+        Path, typer.Option(help="Where bench.md and bench.json go (the committed: reports).")
+    ] = RUNS_DIR,
     sizes: Annotated[str, typer.Option(help="Comma-separated N values.")] = "256,512,1024,2048",
     repeats: Annotated[int, typer.Option(help="Timed repetitions per case.")] = 20,
     skip: Annotated[
@@ -354,15 +355,18 @@ def regress(
         "tests/golden"
     ),
     out_dir: Annotated[
-        Path, typer.Option(help="Reports go here (regression.md, regression/, cie/).")
-    ] = Path("reports"),
+        Path,
+        typer.Option(
+            help="Reports go here (regression.md, regression/, cie/; the committed: reports)."
+        ),
+    ] = RUNS_DIR,
     list_cases: Annotated[bool, typer.Option("--list", help="List the cases and exit.")] = False,
 ) -> None:
     """Golden regression: recompute reference PSFs of every model and mode and compare them.
 
-    Writes reports/regression.md with metrics per case and difference images; exits 1
+    Writes runs/regression.md with metrics per case and difference images; exits 1
     naming the cases outside tolerance. With --cie, fits the eye model's radial profile
-    to the CIE disability-glare function instead (reports/cie/).
+    to the CIE disability-glare function instead (runs/cie/).
     """
     if cie:
         from invglare.commands.regress import run_cie
@@ -403,7 +407,7 @@ def synth(
 def fit(
     config: Annotated[Path, typer.Argument(help="Fit config (TOML), e.g. fits/eye_daylight.toml.")],
     out_dir: Annotated[
-        Path | None, typer.Option(help="Report folder (default: fit.out_dir or reports/NAME).")
+        Path | None, typer.Option(help="Report folder (default: fit.out_dir or runs/NAME).")
     ] = None,
     n_starts: Annotated[int | None, typer.Option(help="Override solver.n_starts.")] = None,
     max_steps: Annotated[int | None, typer.Option(help="Override solver.max_steps.")] = None,
@@ -433,7 +437,7 @@ def fit_batch(
     out_dir: Annotated[
         Path | None,
         typer.Option(
-            help="The fit's report folder (default: fit.out_dir or reports/NAME); the batch "
+            help="The fit's report folder (default: fit.out_dir or runs/NAME); the batch "
             "goes to its batch/ subfolder."
         ),
     ] = None,
@@ -464,7 +468,7 @@ def fit_batch(
     ] = None,
     progress: Annotated[bool, typer.Option(help="Show a progress bar over photos.")] = True,
 ) -> None:
-    """Fit one config to many photos on Dask: reports/NAME/batch/PHOTO/ and a batch table.
+    """Fit one config to many photos on Dask: runs/NAME/batch/PHOTO/ and a batch table.
 
     Each photo is a task on a local cluster (one single-threaded worker process per
     core) or on the cluster at --scheduler. A photo that fails is recorded with its
@@ -518,16 +522,17 @@ def sample(
         str | None, typer.Option(help="Walkers per compiled evaluation, or 'auto' (timed).")
     ] = None,
     out_dir: Annotated[
-        Path | None, typer.Option(help="Report folder of the fit (default: reports/NAME).")
+        Path | None, typer.Option(help="Report folder of the fit (default: runs/NAME).")
     ] = None,
     progress: Annotated[bool, typer.Option(help="Show a progress bar.")] = True,
 ) -> None:
-    """Sample the posterior of a fit with emcee; write reports/NAME/posterior/.
+    """Sample the posterior of a fit with emcee; write runs/NAME/posterior/.
 
-    Starts around the stored fit (reports/NAME/params.json; the fit runs first if
-    there is none), checkpoints every step to posterior/chain.h5, stops once the
-    chain is longer than 50 autocorrelation times or at the step limit, and writes
-    summary.md / summary.json, corner, trace and posterior-predictive plots.
+    Starts around the stored fit (params.json in the report folder, else the committed
+    reports/NAME/; the fit runs first if there is none), checkpoints every step to
+    posterior/chain.h5, stops once the chain is longer than 50 autocorrelation times or
+    at the step limit, and writes summary.md / summary.json, corner, trace and
+    posterior-predictive plots.
     """
     from invglare.commands.sample import run_sample
 

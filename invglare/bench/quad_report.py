@@ -1,9 +1,9 @@
-"""``reports/quad/``: the quad-based transform beside Scandolo, Lee & Eisemann (2018).
+"""``reports/quad/`` (committed): the quad-based transform beside Scandolo, Lee & Eisemann (2018).
 
 Run after ``invglare bench quad --out-dir reports/quad`` (whose ``bench.json`` holds the
 timings of Tables 2-4)::
 
-    python -m invglare.bench.quad_report [--out-dir reports/quad]
+    python -m invglare.bench.quad_report --out-dir reports/quad   # default: runs/quad
 
 It measures what is not a timing (Table 1's quad counts, the fig. 8 quality metrics, the
 culling and progressive errors, a fit with the polygon method against the MFT), draws the
@@ -603,7 +603,7 @@ def _table_rows(records: list[dict]) -> list[str]:
 
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--out-dir", default="reports/quad")
+    parser.add_argument("--out-dir", default="runs/quad")
     parser.add_argument("--quick", action="store_true", help="small sizes (a smoke run)")
     parser.add_argument(
         "--figure", metavar="PNG", help="write only the README's figure (docs/images/quad.png)"

@@ -18,7 +18,7 @@ from invglare.cie_study import CieFitSetup, fit_cie, write_cie_report
 
 result = fit_cie(25.0, 0.5, CieFitSetup())   # minutes: compiles the eye, then fits
 print(result.summary())                      # parameters, residual in log10 units
-write_cie_report([result], "reports")        # reports/cie/cie.md and figures
+write_cie_report([result], "runs")           # runs/cie/cie.md and figures
 ```
 """
 

@@ -9,7 +9,7 @@ why and with which eye). Relative paths are relative to the config file.
 ```toml
 [fit]
 name = "cie_A50_p1"                  # default: the file's stem
-out_dir = "../reports/cie_A50_p1"    # default: reports/NAME under the current folder
+out_dir = "../runs/cie_A50_p1"    # default: runs/NAME under the current folder
 
 [reference]                          # exactly one of:
 cie = { age = 50.0, pigmentation = 1.0 }   # the CIE disability-glare GSF (CIE 135/1)

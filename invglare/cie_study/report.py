@@ -3,7 +3,7 @@
 **Example:**
 
 ```python
-write_cie_report([fit_cie(25.0, 0.5), fit_cie(70.0, 0.5)], "reports")   # reports/cie/cie.md
+write_cie_report([fit_cie(25.0, 0.5), fit_cie(70.0, 0.5)], "runs")   # runs/cie/cie.md
 write_gsf_report(result, "reports/cie_A50_p1", reference="the CIE GSF, age 50")
 ```
 """
@@ -20,6 +20,7 @@ import numpy as np
 
 from invglare.cie_study.fit import CieFitResult
 from invglare.errors import ConfigError
+from invglare.files.outputs import RUNS_DIR
 
 __all__ = ["write_cie_report", "write_gsf_report"]
 
@@ -82,7 +83,7 @@ def _figure(results: Sequence[CieFitResult], path: Path, title: str) -> None:
 
 
 def write_cie_report(
-    results: Sequence[CieFitResult], out_dir: str | os.PathLike[str] = "reports"
+    results: Sequence[CieFitResult], out_dir: str | os.PathLike[str] = RUNS_DIR
 ) -> Path:
     """Write ``<out_dir>/cie/cie.md``, a log-log figure per fit, one of all, and ``fits.json``.
 

@@ -1,4 +1,4 @@
-"""``invglare fit``: fit a model to a photo and write ``reports/NAME/``.
+"""``invglare fit``: fit a model to a photo and write ``runs/NAME/``.
 
 The config is read and checked by :func:`invglare.config.fit.load_fit` (so
 mistakes surface before any compilation), the fit (:meth:`FitSetup.fit
@@ -13,7 +13,7 @@ sweep over discrete choices and the report are :func:`invglare.config.photo_fit.
 **Example:**
 
 ```bash
-invglare fit fits/eye_daylight.toml            # -> reports/eye_daylight/
+invglare fit fits/eye_daylight.toml            # -> runs/eye_daylight/
 invglare fit fits/camera_cross_screen.toml --out-dir /tmp/cam --n-starts 5
 ```
 """

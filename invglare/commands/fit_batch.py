@@ -5,9 +5,9 @@ checked first, and the config with the first photo (so that a mistake in the con
 is one error, not one per photo); then each photo becomes a task on a Dask cluster
 (:mod:`invglare.fit.batch`): a ``LocalCluster`` of one single-threaded worker process
 per core by default, or the cluster at ``--scheduler``. Each photo's report goes to
-``reports/NAME/batch/PHOTO/``, as ``invglare fit`` writes one (``NAME`` and ``reports/NAME``
+``runs/NAME/batch/PHOTO/``, as ``invglare fit`` writes one (``NAME`` and ``runs/NAME``
 as there: ``fit.name``, ``fit.out_dir`` or ``--out-dir``); the batch table and the
-population figures to ``reports/NAME/batch/`` (:mod:`invglare.fit.batch_table`,
+population figures to ``runs/NAME/batch/`` (:mod:`invglare.fit.batch_table`,
 :mod:`invglare.fit.batch_figures`). A rerun skips the photos that have a report.
 
 With ``--vmap K``, up to K consecutive photos of one size are fitted by one task in one
@@ -68,7 +68,7 @@ def run_fit_batch(
 
     **Arguments:** `config`, the fit config; `photos`, as on the command line
     (:func:`invglare.config.batch.read_photos`); `out_dir`, the fit's report folder
-    (default as ``invglare fit``: ``fit.out_dir`` or ``reports/NAME``), whose ``batch/``
+    (default as ``invglare fit``: ``fit.out_dir`` or ``runs/NAME``), whose ``batch/``
     receives the batch; `scheduler`, a running Dask scheduler's address (default: a
     LocalCluster of `workers` processes, default one per core); `vmap`, photos per
     vmapped solve; `n_starts`, `max_steps`, as for ``invglare fit``; `resume`, skip

@@ -2,8 +2,9 @@
 
 One PNG row per model: the aperture transmission ``|t_o P|`` (mm), the PSF as
 ``log10(PSF / peak)`` from -6 to 0 (luminance of an RGB PSF; degrees), and a bundled
-procedural scene convolved with the PSF and tone-mapped. ``reports/gallery.md`` lists
-them; the PNGs go to ``reports/gallery/`` (replaced as a whole, atomically).
+procedural scene convolved with the PSF and tone-mapped. ``runs/gallery.md`` lists
+them; the PNGs go to ``runs/gallery/`` (replaced as a whole, atomically). ``--out-dir
+reports`` refreshes the committed gallery.
 """
 
 from __future__ import annotations

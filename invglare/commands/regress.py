@@ -96,7 +96,7 @@ def run_regress(
 
 
 def run_cie(specs: list[str], out_dir: Path) -> None:
-    """Fit the eye model to the CIE GSF for each ``AGE,PIGMENT`` and write reports/cie/."""
+    """Fit the eye model to the CIE GSF for each ``AGE,PIGMENT``; write OUT_DIR/cie/."""
     from invglare.cie_study import CieFitSetup, fit_cie, parse_cie_spec, write_cie_report
     from invglare.commands.options import named
 

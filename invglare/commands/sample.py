@@ -1,9 +1,10 @@
 """``invglare sample``: the emcee posterior of a fit, checkpointed, with its report.
 
 Reads the fit config through :func:`invglare.config.fit.load_fit`, starts from
-the stored fit result ``reports/NAME/params.json`` (running the fit first when
-there is none), samples with :func:`invglare.fit.sample.sample` into
-``reports/NAME/posterior/chain.h5`` and writes the report of
+the stored fit result ``params.json``: in the report folder (``runs/NAME`` by default),
+else in the config's own folder, else in the committed ``reports/NAME`` (running the fit
+first when there is none), samples with :func:`invglare.fit.sample.sample` into
+``posterior/chain.h5`` of the report folder and writes the report of
 :mod:`invglare.fit.posterior_report` next to it.
 
 An optional ``[sample]`` table of the fit config sets the defaults (command-line
@@ -12,8 +13,9 @@ options win; the table is read by :func:`invglare.config.sample.read_sample_sect
 **Example:**
 
 ```bash
-invglare sample fits/eye_daylight.toml                  # -> reports/eye_daylight/posterior/
+invglare sample fits/eye_daylight.toml                  # -> runs/eye_daylight/posterior/
 invglare sample fits/eye_daylight.toml --resume --steps 20000
+invglare sample fits/eye_daylight.toml --out-dir reports/eye_daylight --resume  # the committed
 ```
 """
 
@@ -54,7 +56,7 @@ def run_sample(
 ) -> Path:
     """Sample the posterior of the fit `config` describes and write its report.
 
-    **Returns:** the posterior folder (``reports/NAME/posterior``).
+    **Returns:** the posterior folder (``runs/NAME/posterior`` by default).
     """
     from invglare.commands import options
     from invglare.commands.fit import logged_deprecations, precheck_fit_config
@@ -143,6 +145,27 @@ def _check_walkers_and_steps(opts: dict, n_params: int, walkers, steps) -> None:
     )
 
 
+def _stored_fit(setup, config: Path) -> Path:
+    """The fit result a posterior starts from: ``params.json`` in the report folder, else in
+    the config's own one (``fit.out_dir`` or ``runs/NAME``), else in the committed
+    ``reports/NAME``; the first of them when none exists (the fit then runs there).
+
+    A posterior written elsewhere, or on a fresh clone, thus starts from a stored fit
+    instead of running the whole fit again."""
+    from invglare.config.fit import read_fit_section
+    from invglare.files.outputs import REPORTS_DIR
+    from invglare.files.toml import load_toml
+
+    _, own_dir = read_fit_section(load_toml(config), config, None)
+    folders = dict.fromkeys([setup.out_dir, own_dir, REPORTS_DIR / setup.name])
+    for folder in folders:
+        if (folder / "params.json").is_file():
+            if folder != setup.out_dir:
+                log.info("using the stored fit %s", folder / "params.json")
+            return folder / "params.json"
+    return setup.out_dir / "params.json"
+
+
 def _sample_and_report(
     setup, chain: Path, config: Path, opts: dict, *, resume: bool, restart: bool, force: bool,
     out_dir: Path | None, progress: bool,
@@ -152,17 +175,7 @@ def _sample_and_report(
     from invglare.fit.posterior_report import write_posterior_report
     from invglare.fit.sample import sample
 
-    params_path = setup.out_dir / "params.json"
-    if not params_path.is_file() and out_dir is not None:
-        # A posterior written elsewhere starts from the fit stored in the config's own
-        # report folder, when there is one, instead of running the whole fit again.
-        from invglare.config.fit import read_fit_section
-        from invglare.files.toml import load_toml
-
-        _, own_dir = read_fit_section(load_toml(Path(config)), Path(config), None)
-        if (own_dir / "params.json").is_file():
-            params_path = own_dir / "params.json"
-            log.info("using the stored fit %s", params_path)
+    params_path = _stored_fit(setup, Path(config))
     if not params_path.is_file():
         from invglare.commands.fit import run_fit
 

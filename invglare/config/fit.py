@@ -8,7 +8,7 @@ Relative paths are relative to the config file.
 ```toml
 [fit]
 name = "eye_daylight"            # default: the file's stem
-out_dir = "../reports/eye_daylight"  # default: reports/NAME under the current folder
+out_dir = "../runs/eye_daylight"  # default: runs/NAME under the current folder
 
 [target]                         # the photo (invglare.config.target)
 file = "../data_synthetic/eye_daylight.exr"   # linear photo in counts (EXR or float TIFF)
@@ -118,6 +118,7 @@ from invglare.config.section import Section, check_sections
 from invglare.config.synth import read_observation, truth_path_for
 from invglare.config.target import load_target, read_target_section, read_truth, resolve
 from invglare.errors import ConfigError
+from invglare.files.outputs import RUNS_DIR
 from invglare.files.toml import load_toml
 
 __all__ = ["SECTIONS", "DiscreteOption", "FitSetup", "load_fit", "read_fit_section"]
@@ -370,7 +371,7 @@ def read_fit_section(
     config: dict[str, Any], config_path: Path, out_dir: str | Path | None
 ) -> tuple[str, Path]:
     """The ``[fit]`` table: the fit's name (default the file's stem) and its report folder
-    (`out_dir` if given, else ``fit.out_dir`` relative to the config, else reports/NAME)."""
+    (`out_dir` if given, else ``fit.out_dir`` relative to the config, else runs/NAME)."""
     sec = Section(config.get("fit", {}), "fit")
     name = sec.get("name", str, config_path.stem)
     out_cfg = sec.get("out_dir", str, None)
@@ -381,7 +382,7 @@ def read_fit_section(
         return name, Path(out_dir)
     if out_cfg is not None:
         return name, resolve(config_path.parent, out_cfg)
-    return name, Path("reports") / name
+    return name, RUNS_DIR / name
 
 
 def is_reference_fit(config: dict[str, Any]) -> bool:

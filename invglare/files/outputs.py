@@ -36,7 +36,15 @@ from pathlib import Path
 
 from invglare.errors import ConfigError
 
-__all__ = ["check_disk", "output_file", "output_folder"]
+__all__ = ["REPORTS_DIR", "RUNS_DIR", "check_disk", "output_file", "output_folder"]
+
+#: Where the commands write by default (fits, posteriors, batches, the gallery, the
+#: benchmark, the regression): git-ignored, so that a user's run never rewrites a committed
+#: report. Name a folder under :data:`REPORTS_DIR` with ``--out-dir`` to refresh one.
+RUNS_DIR = Path("runs")
+
+#: The committed reports of the bundled fits, benchmark, gallery and regression.
+REPORTS_DIR = Path("reports")
 
 
 def _named(option: str, path: Path) -> str:

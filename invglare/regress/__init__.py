@@ -16,7 +16,7 @@ from invglare.regress import run_suite, write_report
 
 results = run_suite(golden_dir="tests/golden")
 failed = [r.case.name for r in results if not r.passed]
-write_report(results, "reports")
+write_report(results, "runs")
 ```
 """
 

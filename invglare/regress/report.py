@@ -3,7 +3,7 @@
 **Example:**
 
 ```python
-write_report(run_suite(golden_dir="tests/golden"), "reports")   # reports/regression.md
+write_report(run_suite(golden_dir="tests/golden"), "runs")   # runs/regression.md
 ```
 """
 
@@ -18,6 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from invglare._core.colour import rec709_luminance_np
+from invglare.files.outputs import RUNS_DIR
 from invglare.regress.cases import CASES
 from invglare.regress.compare import log_scaled, metric_cells
 from invglare.regress.run import CaseResult
@@ -80,7 +81,7 @@ def _environment() -> str:
 
 def write_report(
     results: Sequence[CaseResult],
-    out_dir: str | os.PathLike[str] = "reports",
+    out_dir: str | os.PathLike[str] = RUNS_DIR,
     *,
     updated: Sequence[str] = (),
     golden_dir: str | os.PathLike[str] = "tests/golden",

@@ -181,4 +181,4 @@ def test_committed_cie_fits_cover_every_age_and_pigmentation_within_the_stated_r
     # Both commands run the same fit: same setup, same result.
     assert single["values"] == pytest.approx(same["values"], rel=1e-6)
     ref = load_reference_fit(ROOT / "fits" / "cie_A50_p1.toml")
-    assert ref.cie == (50.0, 1.0) and ref.out_dir == Path("reports") / "cie_A50_p1"
+    assert ref.cie == (50.0, 1.0) and ref.out_dir == Path("runs") / "cie_A50_p1"

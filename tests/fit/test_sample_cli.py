@@ -112,3 +112,42 @@ def test_committed_daylight_posterior_converged_and_covers_the_truth():
         "model.aperture.upper_lashes.mean_angle_deg",
     ):
         assert summary["parameters"][path]["truth_in_95"], path
+
+
+def test_a_posterior_starts_from_the_nearest_stored_fit(tmp_path, monkeypatch):
+    """The stored fit: the report folder's, else the config's own (runs/NAME), else the
+    committed reports/NAME; with none, the report folder's (where the fit then runs)."""
+    from types import SimpleNamespace
+
+    from invglare.commands.sample import _stored_fit
+
+    monkeypatch.chdir(tmp_path)
+    config = tmp_path / "fits" / "eye.toml"
+    config.parent.mkdir()
+    config.write_text('[target]\nfile = "photo.exr"\n')
+    elsewhere = SimpleNamespace(out_dir=tmp_path / "elsewhere", name="eye")
+    own = SimpleNamespace(out_dir=Path("runs") / "eye", name="eye")
+    assert _stored_fit(own, config) == Path("runs/eye/params.json")  # none: the fit runs
+    committed = Path("reports/eye/params.json")
+    committed.parent.mkdir(parents=True)
+    committed.write_text("{}")
+    assert _stored_fit(own, config) == committed
+    assert _stored_fit(elsewhere, config) == committed
+    Path("runs/eye").mkdir(parents=True)
+    Path("runs/eye/params.json").write_text("{}")
+    assert _stored_fit(elsewhere, config) == Path("runs/eye/params.json")
+    (elsewhere.out_dir).mkdir()
+    (elsewhere.out_dir / "params.json").write_text("{}")
+    assert _stored_fit(elsewhere, config) == elsewhere.out_dir / "params.json"
+
+
+def test_runs_write_under_runs_by_default():
+    """A fit's report folder defaults to runs/NAME (git-ignored), never the committed one."""
+    from invglare.config.fit import read_fit_section
+
+    ignored = (Path(__file__).resolve().parents[2] / ".gitignore").read_text().split()
+    assert "/runs/" in ignored
+    name, folder = read_fit_section({}, Path("fits/eye_daylight.toml"), None)
+    assert (name, folder) == ("eye_daylight", Path("runs") / "eye_daylight")
+    name, folder = read_fit_section({}, Path("fits/eye_daylight.toml"), "reports/eye_daylight")
+    assert folder == Path("reports/eye_daylight")
