@@ -56,6 +56,8 @@ views = { radial = 1.0, angular = 1.0 }   # from the best result of the one befo
 max_steps = 40                   # draw-independent statistics first, to reach the right
                                  # basin before fitting pixel by pixel ([views], [solver])
 fixed = ["obs.dx_px", "obs.dy_px"]  # held at their start values in this stage
+branch = { "model.aperture.upper_lashes.count" = [-1, 0, 1] }  # the next stage starts from
+                                 # this one's best with the count rounded and moved by each
 
 [solver]
 solver = "lm"                    # lm (Levenberg-Marquardt) or bfgs

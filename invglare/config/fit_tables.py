@@ -26,7 +26,7 @@ from invglare.errors import ConfigError
 
 FREE_KEYS = ("path", "lower", "upper", "init", "prior", "transform", "nuisance", "indices")
 DISCRETE_KEYS = ("path", "values", "key")
-STAGE_KEYS = ("views", "max_steps", "fixed")
+STAGE_KEYS = ("views", "max_steps", "fixed", "branch")
 
 #: Old ``[[discrete]]`` keys already warned about (once per spelling).
 _WARNED: set[str] = set()
@@ -284,10 +284,25 @@ def read_view_options(
     return {k: dict(v) for k, v in options.items()}
 
 
+def _free_path(forward: Any, paths: tuple[str, ...], path: Any, where: str) -> str:
+    """`path` in the one path language, refused unless it is a free parameter (`paths`)."""
+    from invglare.fit.paths import spelling
+
+    try:
+        path = spelling(forward, path)
+    except ConfigError:
+        pass  # refused below, naming the free parameters
+    if path not in paths:
+        raise ConfigError(
+            f"{where} names {path!r}, which is not a free parameter ({', '.join(paths)})"
+        )
+    return path
+
+
 def read_stages(tables: Any, default_steps: int, forward: Any, paths: tuple[str, ...]) -> tuple:
     """The :class:`~invglare.fit.stages.Stage` s of the ``[[stage]]`` tables; their
-    ``fixed`` paths must be free parameters (`paths`), in any spelling of them."""
-    from invglare.fit.paths import spelling
+    ``fixed`` and ``branch`` paths must be free parameters (`paths`), in any spelling of
+    them."""
     from invglare.fit.stages import Stage
 
     if tables is None:
@@ -301,24 +316,27 @@ def read_stages(tables: Any, default_steps: int, forward: Any, paths: tuple[str,
         views = read_views(sec.get("views", dict, required=True), f"{where}.views")
         steps = sec.get("max_steps", int, default_steps)
         fixed = sec.get("fixed", list, [])
+        branch = sec.get("branch", dict, {})
         sec.finish()
         if steps < 1:
             raise ConfigError(f"{where}.max_steps must be >= 1, got {steps}")
-        spelt = []
-        for path in fixed:
-            try:
-                path = spelling(forward, path)
-            except ConfigError:
-                pass  # refused below, naming the free parameters
-            if path not in paths:
-                raise ConfigError(
-                    f"{where}.fixed names {path!r}, which is not a free parameter "
-                    f"({', '.join(paths)})"
-                )
-            spelt.append(path)
+        spelt = [_free_path(forward, paths, path, f"{where}.fixed") for path in fixed]
         if len(set(spelt)) >= len(paths):
             raise ConfigError(f"{where}.fixed holds every free parameter; nothing is left to fit")
-        out.append(Stage(views, steps, tuple(spelt)))
+        branches = []
+        for path, offsets in branch.items():
+            if (
+                not isinstance(offsets, list)
+                or not offsets
+                or not all(isinstance(o, int) and not isinstance(o, bool) for o in offsets)
+                or len(set(offsets)) != len(offsets)
+            ):
+                raise ConfigError(
+                    f"{where}.branch.{path} must be a list of distinct integer offsets "
+                    f"(e.g. [-1, 0, 1]), got {offsets!r}"
+                )
+            branches.append((_free_path(forward, paths, path, f"{where}.branch"), tuple(offsets)))
+        out.append(Stage(views, steps, tuple(spelt), tuple(branches)))
     return tuple(out)
 
 

@@ -8,7 +8,9 @@ that speckle by their random draw), so a fit runs as a plan:
    flux that matches the photo's unclipped pixels first (:func:`scan`);
 2. **stages** (:class:`Stage`) before the final fit, each on views that do not depend on
    the random draw (radial profile, angular energy), from the best result of the one
-   before, with some parameters **held** at their start values (:func:`hold`);
+   before, with some parameters **held** at their start values (:func:`hold`); a stage
+   may **branch** its best result into several starts of the next, one per integer value
+   of a relaxed count near it (:func:`branched_starts`);
 3. the **final** fit, on the final views, from the best result so far.
 
 :func:`fit_staged` runs the plan and returns one :class:`~invglare.fit.FitResult`
@@ -63,12 +65,20 @@ class Stage:
     pixel-wise stage. Such views hardly constrain some nuisances (the source centre):
     `fixed` holds them at the values the stage starts from.
 
-    **Example:** ``Stage({"radial": 1.0, "angular": 1.0}, 40, ("obs.dx_px", "obs.dy_px"))``.
+    A relaxed count (an eye's lashes) that such views place only to within a lash or two
+    still leaves the pixel-wise stage in the wrong basin: each integer count draws other
+    lashes. `branch` ``((path, offsets),)`` starts the next stage once per offset, from
+    the stage's best result with `path` rounded to an integer plus the offset (see
+    :func:`branched_starts`); the next stage keeps the best.
+
+    **Example:** ``Stage({"radial": 1.0, "angular": 1.0}, 40, ("obs.dx_px", "obs.dy_px"),
+    (("model.aperture.upper_lashes.count", (-1, 0, 1)),))``.
     """
 
     views: dict[str, float]
     max_steps: int
     fixed: tuple[str, ...] = ()
+    branch: tuple[tuple[str, tuple[int, ...]], ...] = ()
 
 
 class ScanProgress(NamedTuple):
@@ -227,6 +237,7 @@ class _Plan:
         self.view_options, self.progress, self.stage_done = view_options, progress, stage_done
         self.resume = resume
         pre = [(st.views, {**_EARLY, "max_steps": st.max_steps}, st.fixed) for st in stages]
+        self.branches = [st.branch for st in stages] + [()]
         self.record = None
         if resume is None:
             self.plan = pre + ([(views, {}, ())] if final else [])
@@ -323,7 +334,9 @@ class _Plan:
                 )
             )
         if k + 1 < len(self.plan):
-            self.starts = np.asarray([[result.values[p] for p in paths]])
+            best = np.asarray([result.values[p] for p in paths])
+            self.starts = branched_starts(self.space, best, self.branches[k])
+            self.origin = np.repeat(self.origin, self.starts.shape[0])
         self.last = result
 
     def result(self) -> FitResult:
@@ -350,6 +363,33 @@ class _Plan:
         result.n_steps = self.n_steps
         result.timing_s = self.timing
         return result
+
+
+def branched_starts(
+    space: ParameterSpace,
+    best: Float[ArrayLike, " p"],
+    branch: Sequence[tuple[str, Sequence[int]]],
+) -> np.ndarray:
+    """The starts a stage's `best` result (physical, order of `space.paths`) branches into.
+
+    For each ``(path, offsets)`` of `branch` (several multiply), one start per offset with
+    `path` at ``round(value) + offset``, moved inside its bounds by a small margin when it
+    falls on or beyond one (so their number, and a vmapped fit's shapes, do not depend on
+    the value). No branch: `best` alone. **Returns:** ``(n, p)``.
+    """
+    starts = np.asarray(best, dtype=float)[None, :]
+    for path, offsets in branch:
+        i = space.paths.index(path)
+        lo, hi = float(space.all[i].lower), float(space.all[i].upper)
+        margin = 1e-3 * (hi - lo) if math.isfinite(hi - lo) else 1e-3
+        rows = []
+        for row in starts:
+            for offset in offsets:
+                new = row.copy()
+                new[i] = min(max(round(row[i]) + offset, lo + margin), hi - margin)
+                rows.append(new)
+        starts = np.asarray(rows)
+    return starts
 
 
 #: Rounds of a stage with draws: each measures the scatter between eyes at its start (the

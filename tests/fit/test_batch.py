@@ -140,8 +140,9 @@ def test_fit_many_gives_each_photo_its_own_fit(photos):
             assert len(b.stages) == 2 and b.stages[0]["factor"] == 2
 
 
-def test_fit_staged_many_equals_fit_staged_with_a_scan_and_a_held_stage(photos):
-    stage = Stage({"radial": 1.0}, 30, ("obs.dx_px",))
+@pytest.mark.parametrize("branch", [(), ((SIGMA, (0, 1)),)], ids=["one", "branched"])
+def test_fit_staged_many_equals_fit_staged_with_a_scan_and_a_held_stage(photos, branch):
+    stage = Stage({"radial": 1.0}, 30, ("obs.dx_px",), branch)
     alone, per_photo = [], []
     for s, f, t, tv in photos:
         scan_points = starts_of(s, np.linspace(1.2, 4.8, 9))
@@ -161,6 +162,7 @@ def test_fit_staged_many_equals_fit_staged_with_a_scan_and_a_held_stage(photos):
         assert [st["views"] for st in b.stages] == [st["views"] for st in a.stages]
         assert b.stages[0]["scan"]["kept"] == a.stages[0]["scan"]["kept"]
         assert b.converged == a.converged  # (best_start may differ: two starts tie)
+        assert len(b.stages[-1]["final_loss"]) == (2 if branch else 1)
 
 
 def test_photos_of_different_sizes_are_not_stacked(photos):

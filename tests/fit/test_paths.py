@@ -116,6 +116,17 @@ def test_the_free_and_stage_readers_keep_the_new_spelling():
     assert read.fixed == ("model.aperture.diameter_mm",)
     with pytest.raises(ConfigError, match=r"fixed names 'obs\.gain', which is not a free"):
         fit_tables.read_stages([{"views": {"radial": 1.0}, "fixed": ["obs.gain"]}], 10, fwd, paths)
+    # A branch names a free parameter in any spelling, with distinct integer offsets.
+    stage = {"views": {"radial": 1.0}, "branch": {"model.eye.diameter_mm": [-1, 0, 1]}}
+    (read,) = fit_tables.read_stages([stage], 10, fwd, paths)  # warned once above
+    assert read.branch == (("model.aperture.diameter_mm", (-1, 0, 1)),)
+    with pytest.raises(ConfigError, match=r"branch names 'obs\.gain', which is not a free"):
+        fit_tables.read_stages([{"views": {"radial": 1.0}, "branch": {"obs.gain": [0]}}], 10, fwd,
+                               paths)  # fmt: skip
+    for bad in ([], [0, 0], [0.5], [True], 1):
+        stage = {"views": {"radial": 1.0}, "branch": {"obs.flux": bad}}
+        with pytest.raises(ConfigError, match=r"branch\.obs\.flux must be a list of distinct"):
+            fit_tables.read_stages([stage], 10, fwd, paths)
 
 
 @pytest.mark.parametrize(

@@ -15,7 +15,15 @@ from jaxtyping import Array, Float
 from invglare.errors import ConfigError
 from invglare.fit import Forward, Observation, Parameter, ParameterSpace, make_residual_fn
 from invglare.fit.params import START_MARGIN
-from invglare.fit.stages import ScanProgress, Stage, StageDone, fit_staged, hold, scan
+from invglare.fit.stages import (
+    ScanProgress,
+    Stage,
+    StageDone,
+    branched_starts,
+    fit_staged,
+    hold,
+    scan,
+)
 from invglare.fit.starts import centre_guess, default_init, draw_starts, photo_guesses
 
 SIGMA = "model.sigma_px"
@@ -126,6 +134,35 @@ def test_staged_fit_hands_the_best_stage_on_and_records_every_stage(problem):
     assert len(resumed.stages) == 2 and resumed.starts == early.starts
     with pytest.raises(ConfigError, match="final=False needs stages"):
         fit_staged(space, forward, target, {"pixels": 1.0}, starts, final=False)
+
+
+def test_branched_starts_round_offset_and_stay_inside_the_bounds(problem):
+    space, _, _ = problem  # sigma in [1, 5], dx and dy in [-2, 2]
+    best = np.array([2.6, 4e4, 0.3, -1.4])
+    assert branched_starts(space, best, ()).tolist() == [best.tolist()]
+    starts = branched_starts(space, best, [(SIGMA, (-2, -1, 0, 1, 3))])
+    margin = 1e-3 * 4.0  # of the width: a start never sits on a bound
+    assert starts[:, 0].tolist() == pytest.approx([1.0 + margin, 2.0, 3.0, 4.0, 5.0 - margin])
+    assert np.all(starts[:, 1:] == best[1:])
+    # Two branches multiply: every sigma with every dy.
+    both = branched_starts(space, best, [(SIGMA, (0, 1)), ("obs.dy_px", (0, 1))])
+    assert [tuple(r) for r in both[:, [0, 3]]] == [(3.0, -1.0), (3.0, 0.0), (4.0, -1.0), (4.0, 0.0)]
+
+
+def test_a_stage_branches_its_best_into_the_next_stages_starts(problem):
+    space, forward, target = problem
+    starts = draw_starts(space, {}, 2, seed=0)
+    stage = Stage({"radial": 1.0}, 30, ("obs.dx_px", "obs.dy_px"), ((SIGMA, (-1, 0, 1)),))
+    result = fit_staged(
+        space, forward, target, {"pixels": 1.0}, starts, stages=[stage], max_steps=40,
+        batch="loop",
+    )  # fmt: skip
+    first, last = result.stages
+    assert len(first["final_loss"]) == 2 and len(last["final_loss"]) == 3
+    # Every final start descends from the first stage's best start; the best of them wins.
+    assert last["origin"] == [result.best_start] * 3
+    assert result.loss == pytest.approx(min(last["final_loss"]))
+    assert abs(result.values[SIGMA] - 2.2) < 0.05
 
 
 def test_centre_guess_finds_the_core_and_guesses_stay_inside_the_bounds(problem):
