@@ -76,8 +76,9 @@ def run_sample_benchmark(
     """Time emcee steps of the daylight-eye posterior; return one JSON-ready record.
 
     **Arguments:** `n_steps` timed steps per mode (after one warm-up); `config_path`,
-    the fit whose committed ``params.json`` (and ``posterior/summary.json``, if any)
-    lies in its report folder; `batches`, the batch sizes of the vectorized mode;
+    the fit whose stored ``params.json`` (and ``posterior/summary.json``, if any) lies
+    in its report folder (:func:`~invglare.config.fit.stored_fit`: a fresh run's, else the
+    committed one); `batches`, the batch sizes of the vectorized mode;
     `vectorize_off`, also time emcee's per-walker calls.
 
     **Raises:** `ConfigError` when the fit has no ``params.json`` (run ``invglare fit``).
@@ -87,7 +88,7 @@ def run_sample_benchmark(
     import jax
     import jax.numpy as jnp
 
-    from invglare.config.fit import load_fit
+    from invglare.config.fit import load_fit, stored_fit
     from invglare.fit import FitResult
     from invglare.fit.sample import BatchedLogProb, initial_walkers, make_log_posterior
 
@@ -96,7 +97,7 @@ def run_sample_benchmark(
     config_path = Path(config_path).resolve()
     with jax.enable_x64(True):
         setup = load_fit(config_path)
-        params = setup.out_dir / "params.json"
+        params = stored_fit(setup, config_path)
         if not params.is_file():
             raise ConfigError(
                 f"the sampling benchmark starts from the fit in {params}, which does not "
@@ -104,7 +105,7 @@ def run_sample_benchmark(
             )
         fit_result = FitResult.from_json(params)
         lp = make_log_posterior(setup.space, setup.forward, setup.target)
-        tau_max, chain = _tau_max(setup.out_dir / "posterior" / "summary.json")
+        tau_max, chain = _tau_max(params.parent / "posterior" / "summary.json")
         record: dict[str, Any] = {
             "case": "sample_daylight_eye",
             "kind": "sample",

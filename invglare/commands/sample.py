@@ -145,37 +145,17 @@ def _check_walkers_and_steps(opts: dict, n_params: int, walkers, steps) -> None:
     )
 
 
-def _stored_fit(setup, config: Path) -> Path:
-    """The fit result a posterior starts from: ``params.json`` in the report folder, else in
-    the config's own one (``fit.out_dir`` or ``runs/NAME``), else in the committed
-    ``reports/NAME``; the first of them when none exists (the fit then runs there).
-
-    A posterior written elsewhere, or on a fresh clone, thus starts from a stored fit
-    instead of running the whole fit again."""
-    from invglare.config.fit import read_fit_section
-    from invglare.files.outputs import REPORTS_DIR
-    from invglare.files.toml import load_toml
-
-    _, own_dir = read_fit_section(load_toml(config), config, None)
-    folders = dict.fromkeys([setup.out_dir, own_dir, REPORTS_DIR / setup.name])
-    for folder in folders:
-        if (folder / "params.json").is_file():
-            if folder != setup.out_dir:
-                log.info("using the stored fit %s", folder / "params.json")
-            return folder / "params.json"
-    return setup.out_dir / "params.json"
-
-
 def _sample_and_report(
     setup, chain: Path, config: Path, opts: dict, *, resume: bool, restart: bool, force: bool,
     out_dir: Path | None, progress: bool,
 ) -> Path:
     """Sample (running the fit first if there is none) and write the posterior report."""
+    from invglare.config.fit import stored_fit
     from invglare.fit import FitResult
     from invglare.fit.posterior_report import write_posterior_report
     from invglare.fit.sample import sample
 
-    params_path = _stored_fit(setup, Path(config))
+    params_path = stored_fit(setup, Path(config))
     if not params_path.is_file():
         from invglare.commands.fit import run_fit
 

@@ -97,6 +97,7 @@ from __future__ import annotations
 import copy
 import dataclasses
 import itertools
+import logging
 import math
 import re
 from collections.abc import Callable, Mapping
@@ -120,8 +121,10 @@ from invglare.config.section import Section, check_sections
 from invglare.config.synth import read_observation, truth_path_for
 from invglare.config.target import load_target, read_target_section, read_truth, resolve
 from invglare.errors import ConfigError
-from invglare.files.outputs import RUNS_DIR
+from invglare.files.outputs import REPORTS_DIR, RUNS_DIR
 from invglare.files.toml import load_toml
+
+log = logging.getLogger("invglare")
 
 __all__ = ["SECTIONS", "DiscreteOption", "FitSetup", "load_fit", "read_fit_section"]
 
@@ -385,6 +388,23 @@ def read_fit_section(
     if out_cfg is not None:
         return name, resolve(config_path.parent, out_cfg)
     return name, RUNS_DIR / name
+
+
+def stored_fit(setup: FitSetup, config: str | Path) -> Path:
+    """The fit result a posterior starts from: ``params.json`` in the report folder, else in
+    the config's own one (``fit.out_dir`` or ``runs/NAME``), else in the committed
+    ``reports/NAME``; the first of them when none exists (the fit then runs there).
+
+    A posterior written elsewhere, or on a fresh clone, thus starts from a stored fit
+    instead of running the whole fit again."""
+    _, own_dir = read_fit_section(load_toml(config), Path(config), None)
+    folders = dict.fromkeys([setup.out_dir, own_dir, REPORTS_DIR / setup.name])
+    for folder in folders:
+        if (folder / "params.json").is_file():
+            if folder != setup.out_dir:
+                log.info("using the stored fit %s", folder / "params.json")
+            return folder / "params.json"
+    return setup.out_dir / "params.json"
 
 
 def is_reference_fit(config: dict[str, Any]) -> bool:

@@ -119,7 +119,7 @@ def test_a_posterior_starts_from_the_nearest_stored_fit(tmp_path, monkeypatch):
     committed reports/NAME; with none, the report folder's (where the fit then runs)."""
     from types import SimpleNamespace
 
-    from invglare.commands.sample import _stored_fit
+    from invglare.config.fit import stored_fit
 
     monkeypatch.chdir(tmp_path)
     config = tmp_path / "fits" / "eye.toml"
@@ -127,18 +127,18 @@ def test_a_posterior_starts_from_the_nearest_stored_fit(tmp_path, monkeypatch):
     config.write_text('[target]\nfile = "photo.exr"\n')
     elsewhere = SimpleNamespace(out_dir=tmp_path / "elsewhere", name="eye")
     own = SimpleNamespace(out_dir=Path("runs") / "eye", name="eye")
-    assert _stored_fit(own, config) == Path("runs/eye/params.json")  # none: the fit runs
+    assert stored_fit(own, config) == Path("runs/eye/params.json")  # none: the fit runs
     committed = Path("reports/eye/params.json")
     committed.parent.mkdir(parents=True)
     committed.write_text("{}")
-    assert _stored_fit(own, config) == committed
-    assert _stored_fit(elsewhere, config) == committed
+    assert stored_fit(own, config) == committed
+    assert stored_fit(elsewhere, config) == committed
     Path("runs/eye").mkdir(parents=True)
     Path("runs/eye/params.json").write_text("{}")
-    assert _stored_fit(elsewhere, config) == Path("runs/eye/params.json")
+    assert stored_fit(elsewhere, config) == Path("runs/eye/params.json")
     (elsewhere.out_dir).mkdir()
     (elsewhere.out_dir / "params.json").write_text("{}")
-    assert _stored_fit(elsewhere, config) == elsewhere.out_dir / "params.json"
+    assert stored_fit(elsewhere, config) == elsewhere.out_dir / "params.json"
 
 
 def test_runs_write_under_runs_by_default():
