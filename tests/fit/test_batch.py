@@ -7,9 +7,11 @@ holds no photo-specific static value), ``fit_many`` / ``fit_staged_many`` give e
 the answer of its own fit, and the table and figures say what the results say.
 """
 
+import csv
 import json
 import math
 import time
+from pathlib import Path
 
 import equinox as eqx
 import jax
@@ -20,6 +22,7 @@ from helpers import x64
 from jaxtyping import Array, Float
 
 from invglare.errors import ConfigError
+from invglare.files.toml import load_toml
 from invglare.fit import FitResult, Forward, Observation, Parameter, ParameterSpace, fit
 from invglare.fit.batch import (
     Outcome,
@@ -281,3 +284,25 @@ def test_an_unreachable_scheduler_is_a_clear_error_within_seconds():
         with dask_client("tcp://127.0.0.1:9", connect_timeout_s=2.0):
             pass
     assert time.perf_counter() - t0 < 30.0
+
+
+def test_the_committed_population_batch_places_every_lash_count():
+    """reports/eye_population/batch (``invglare fit-batch fits/eye_population.toml``, whose
+    first stage branches the lash count into five starts): every lash count within 1 of its
+    truth, every converged eye's pupil within 2 %, and each other eye named with its reason."""
+    root = Path(__file__).resolve().parents[2]
+    (stage,) = load_toml(root / "fits" / "eye_population.toml")["stage"]
+    assert stage["branch"] == {"model.aperture.upper_lashes.count": [-2, -1, 0, 1, 2]}
+    folder = root / "reports" / "eye_population" / "batch"
+    with open(folder / "batch.csv", newline="") as f:
+        rows = list(csv.DictReader(f))
+    assert len(rows) == 16
+    pupil, count = "model.aperture.pupil.diameter_mm", "model.aperture.upper_lashes.count"
+    for row in rows:
+        assert abs(float(row[count]) - float(row[f"{count} truth"])) < 1.0, row["name"]
+        if row["status"] == "ok":
+            assert abs(float(row[pupil]) / float(row[f"{pupil} truth"]) - 1.0) < 0.02, row["name"]
+            assert abs(float(row["reduced_chi2"]) - 1.0) < 0.1, row["name"]
+        else:
+            assert row["reason"] and row["name"] in (folder / "batch.md").read_text()
+    assert sum(row["status"] == "ok" for row in rows) >= 13
