@@ -97,7 +97,7 @@ def run_sample_benchmark(
     config_path = Path(config_path).resolve()
     with jax.enable_x64(True):
         setup = load_fit(config_path)
-        params = stored_fit(setup, config_path)
+        params = stored_fit(setup)
         if not params.is_file():
             raise ConfigError(
                 f"the sampling benchmark starts from the fit in {params}, which does not "

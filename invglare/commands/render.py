@@ -84,7 +84,7 @@ def run_render(
 ) -> None:
     from invglare.config.section import precheck_model_config
 
-    precheck_model_config(model_path)  # a typo is reported before JAX loads
+    config = precheck_model_config(model_path)  # a typo is reported before JAX loads
     import jax.numpy as jnp
 
     from invglare.render import convolve_psf, replace_with_billboards, validate_scene
@@ -108,7 +108,8 @@ def run_render(
     # with its axis at the centre; a PSF model at its own sampling.
     model = _load_model(
         model_path,
-        lambda kind: (
+        config=config,
+        grid_of=lambda kind: (
             dict(npix=tuple(image.shape[:2]), pixel_scale_deg=scale)
             if kind.model_class.centre == "axis"
             else {}
@@ -328,13 +329,15 @@ def _write(out: Path, result, scale: float, model, mode: str, scene: Path, tonem
     log.info("wrote %s (%s)", out, mode)
 
 
-def _load_model(model_path: Path, grid_of=None):
+def _load_model(model_path: Path, grid_of=None, config=None):
     """The model of a config file; `grid_of(kind)` gives ``npix`` / ``pixel_scale_deg``
-    overrides for a registered model kind (the file is read once)."""
-    from invglare.config.model import build_model, config_kind
+    overrides for a registered model kind; `config` is the file already read (and checked,
+    :func:`~invglare.config.section.precheck_model_config`), else it is read here."""
     from invglare.config.section import precheck_model_config
 
-    config = precheck_model_config(model_path)
+    config = precheck_model_config(model_path) if config is None else config
+    from invglare.config.model import build_model, config_kind
+
     grid = grid_of(config_kind(config, str(model_path))) if grid_of is not None else {}
     return build_model(config, base_dir=model_path.parent, source=str(model_path), **grid)
 

@@ -155,7 +155,7 @@ def _sample_and_report(
     from invglare.fit.posterior_report import write_posterior_report
     from invglare.fit.sample import sample
 
-    params_path = stored_fit(setup, Path(config))
+    params_path = stored_fit(setup)
     if not params_path.is_file():
         from invglare.commands.fit import run_fit
 

@@ -390,14 +390,14 @@ def read_fit_section(
     return name, RUNS_DIR / name
 
 
-def stored_fit(setup: FitSetup, config: str | Path) -> Path:
+def stored_fit(setup: FitSetup) -> Path:
     """The fit result a posterior starts from: ``params.json`` in the report folder, else in
     the config's own one (``fit.out_dir`` or ``runs/NAME``), else in the committed
     ``reports/NAME``; the first of them when none exists (the fit then runs there).
 
     A posterior written elsewhere, or on a fresh clone, thus starts from a stored fit
     instead of running the whole fit again."""
-    _, own_dir = read_fit_section(load_toml(config), Path(config), None)
+    _, own_dir = read_fit_section(load_toml(setup.config_path), setup.config_path, None)
     folders = dict.fromkeys([setup.out_dir, own_dir, REPORTS_DIR / setup.name])
     for folder in folders:
         if (folder / "params.json").is_file():

@@ -125,20 +125,20 @@ def test_a_posterior_starts_from_the_nearest_stored_fit(tmp_path, monkeypatch):
     config = tmp_path / "fits" / "eye.toml"
     config.parent.mkdir()
     config.write_text('[target]\nfile = "photo.exr"\n')
-    elsewhere = SimpleNamespace(out_dir=tmp_path / "elsewhere", name="eye")
-    own = SimpleNamespace(out_dir=Path("runs") / "eye", name="eye")
-    assert stored_fit(own, config) == Path("runs/eye/params.json")  # none: the fit runs
+    elsewhere = SimpleNamespace(out_dir=tmp_path / "elsewhere", name="eye", config_path=config)
+    own = SimpleNamespace(out_dir=Path("runs") / "eye", name="eye", config_path=config)
+    assert stored_fit(own) == Path("runs/eye/params.json")  # none: the fit runs
     committed = Path("reports/eye/params.json")
     committed.parent.mkdir(parents=True)
     committed.write_text("{}")
-    assert stored_fit(own, config) == committed
-    assert stored_fit(elsewhere, config) == committed
+    assert stored_fit(own) == committed
+    assert stored_fit(elsewhere) == committed
     Path("runs/eye").mkdir(parents=True)
     Path("runs/eye/params.json").write_text("{}")
-    assert stored_fit(elsewhere, config) == Path("runs/eye/params.json")
+    assert stored_fit(elsewhere) == Path("runs/eye/params.json")
     (elsewhere.out_dir).mkdir()
     (elsewhere.out_dir / "params.json").write_text("{}")
-    assert stored_fit(elsewhere, config) == elsewhere.out_dir / "params.json"
+    assert stored_fit(elsewhere) == elsewhere.out_dir / "params.json"
 
 
 def test_runs_write_under_runs_by_default():
