@@ -46,6 +46,12 @@ SMALLER: tuple[tuple[str, str, str], ...] = (
         "the full fit (3 CPU minutes) is rerun by tests/fit/test_other_draws.py",
     ),
     (
+        '"data_synthetic/eye_population/*.exr" --workers 2',
+        '"data_synthetic/eye_population/eye_0[0-3].exr" --workers 2',
+        "4 of the 16 photos: the committed batch of all 16 is checked by tests/fit/test_batch.py "
+        "and the batch machinery on a real cluster by tests/commands/test_fit_batch.py",
+    ),
+    (
         "invglare fit fits/cie_A50_p1.toml",
         "invglare fit fits/cie_A50_p1.toml --max-steps 2 --no-progress",
         "the reference fit's own tests are in tests/cie_study/",

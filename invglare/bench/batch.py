@@ -189,7 +189,8 @@ def batch_markdown(record: dict[str, Any]) -> list[str]:
         "",
         f"Measured {record['date']}: {record['n_photos']} photos of `{record['photos']}` "
         f"fitted with `{record['config']}` on LocalClusters of single-threaded worker "
-        "processes, every worker warmed first by one untimed fit (it compiles there). Load "
+        "processes, each pinned to a core of its own (`invglare.fit.batch.pin_to_core`), "
+        "every worker warmed first by one untimed fit (it compiles there). Load "
         f"(1 min) {record['load_1m_start']} at the start, {record['load_1m_end']} at the end.",
         "",
         "| workers | wall s | photos per minute | speed-up | load |",

@@ -11,8 +11,7 @@ from typing import Any
 from invglare.aperture.camera import CameraAperture, CrossScreen, Diaphragm, Dust
 from invglare.aperture.eye.schema import IMAGE_DEFAULT_ROLES
 from invglare.config.section import Section
-from invglare.config.shapes import shape_from_config
-from invglare.errors import ConfigError
+from invglare.config.shapes import image_masks
 
 
 def camera_from_config(
@@ -84,16 +83,7 @@ def camera_from_config(
         octaves=(int, None),
         edge_softness=(float, None),
     )
-    images = {}
-    for name, role in IMAGE_DEFAULT_ROLES.items():
-        image_table = top.get(name, dict, None)
-        images[name] = None
-        if image_table is not None:
-            if "kind" in image_table:
-                raise ConfigError(f"{where}.{name} is an image: drop its key 'kind'")
-            images[name] = shape_from_config(
-                {"kind": "image", "role": role, **image_table}, f"{where}.{name}", base_dir
-            )
+    images = image_masks(top, IMAGE_DEFAULT_ROLES, where, base_dir)
     top.finish()
     # Range errors are placed at the camera's table (``camera: diaphragm n_blades ...``).
     return CameraAperture(

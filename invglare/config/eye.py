@@ -27,7 +27,7 @@ from invglare.aperture.eye.schema import (
     SEED_TAGS,
 )
 from invglare.config.section import Section
-from invglare.config.shapes import shape_from_config
+from invglare.config.shapes import image_masks
 from invglare.errors import ConfigError
 
 # How a value of each kind of key is read (see the schema); `None` as the default: absent,
@@ -155,16 +155,7 @@ def eye_from_config(
     if gratings_sec is not None:
         key = jax.random.fold_in(root, SEED_TAGS["gratings"])
         gratings = _component(gratings_sec, Gratings, GRATING_KEYS, ("count",), key)
-    images = {}
-    for name, role in IMAGE_DEFAULT_ROLES.items():
-        image_table = top.get(name, dict, None)
-        images[name] = None
-        if image_table is not None:
-            if "kind" in image_table:
-                raise ConfigError(f"{where}.{name} is an image: drop its key 'kind'")
-            images[name] = shape_from_config(
-                {"kind": "image", "role": role, **image_table}, f"{where}.{name}", base_dir
-            )
+    images = image_masks(top, IMAGE_DEFAULT_ROLES, where, base_dir)
     top.finish()
     return top.build(
         EyeAperture,

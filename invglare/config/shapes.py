@@ -77,3 +77,24 @@ def shape_from_config(
             path = Path(base_dir) / path
         return sec.build(ImageMask.from_file, path, **args)
     return sec.build(SHAPE_KINDS[kind], **args)
+
+
+def image_masks(
+    top: Section, roles: dict[str, str], where: str, base_dir: str | Path | None
+) -> dict[str, ImageMask | None]:
+    """The optional image tables of an aperture's section (``obstacle_image``,
+    ``pupil_image``, ...): ``{name: ImageMask or None}``, each with its default `role`
+    from `roles`; a table names no `kind` (it is an image by its key)."""
+    images: dict[str, ImageMask | None] = {}
+    for name, role in roles.items():
+        table = top.get(name, dict, None)
+        if table is not None and "kind" in table:
+            raise ConfigError(f"{where}.{name} is an image: drop its key 'kind'")
+        images[name] = (
+            None
+            if table is None
+            else shape_from_config(
+                {"kind": "image", "role": role, **table}, f"{where}.{name}", base_dir
+            )
+        )
+    return images

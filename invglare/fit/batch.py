@@ -6,9 +6,9 @@ group of photos on a worker and writes their reports. This module:
 
 - starts a ``LocalCluster`` (:func:`dask_client`): worker processes with one thread each,
   as many as cores, started with ``spawn`` (JAX warns that ``fork`` after its threads
-  start can deadlock), XLA held to one thread per worker so that workers do not compete
-  for cores; or connects to an existing scheduler by address, failing within seconds
-  when none answers;
+  start can deadlock), each pinned to a core of its own with XLA's thread flags set to
+  one thread, so that workers do not compete for cores; or connects to an existing
+  scheduler by address, failing within seconds when none answers;
 - sets every worker up once (:class:`JaxWorkerSetup`): JAX's persistent compilation cache,
   and XLA's buffers kept mapped (as the ``invglare`` command does). A worker keeps its
   compiled programs between tasks (:mod:`invglare.fit.solve` caches the solve per model
@@ -105,25 +105,51 @@ class JaxWorkerSetup(WorkerPlugin):
     It points JAX's persistent compilation cache at `cache_dir` (programs compiled by one
     worker or run are loaded, not compiled, by the next; JAX does not persist programs
     holding host callbacks, such as the solves that report each step's loss, so those
-    are compiled once per worker process) and keeps XLA's freed buffers mapped.
+    are compiled once per worker process) and keeps XLA's freed buffers mapped. With
+    `pin` (a LocalCluster's workers, named 0, 1, ...), it pins worker ``i`` to core
+    ``i mod cores`` before JAX starts (:func:`pin_to_core`).
     """
 
     name = "invglare-jax-setup"
     idempotent = True
 
-    def __init__(self, cache_dir: str | None):
+    def __init__(self, cache_dir: str | None, pin: bool = False):
         self.cache_dir = cache_dir
+        self.pin = pin
 
     def setup(self, worker: Any = None) -> None:
         import jax
 
         from invglare._core.allocator import retain_freed_memory
 
+        if self.pin and worker is not None and isinstance(worker.name, int):
+            pin_to_core(worker.name)
         retain_freed_memory()
         if self.cache_dir:
             jax.config.update("jax_compilation_cache_dir", self.cache_dir)
             jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
 
+
+
+def pin_to_core(index: int) -> int | None:
+    """Pin every thread of this process to one of the cores it may run on (the
+    ``index``-th, cyclically), so that threads it starts later stay there too; return
+    that core (None off Linux, where nothing is pinned).
+
+    Why: XLA's CPU runtime runs independent operations of a program on a thread pool of
+    its own, which the ``XLA_FLAGS`` of :func:`worker_env` do not shrink. An unpinned
+    worker's fit of a population photo kept 1.5 cores busy (measured, 2-core machine), so
+    two workers on two cores fought over them. Call it before JAX's backend starts: the
+    pool is sized by the cores this process may use, then one.
+    """
+    if not hasattr(os, "sched_setaffinity"):
+        return None
+    cores = sorted(os.sched_getaffinity(0))
+    core = cores[index % len(cores)]
+    for tid in os.listdir("/proc/self/task"):
+        with contextlib.suppress(OSError):  # a thread that has just ended
+            os.sched_setaffinity(int(tid), {core})
+    return core
 
 
 def check_address(address: str) -> str:
@@ -151,6 +177,7 @@ def dask_client(
     *,
     cache_dir: str | Path | None = DEFAULT_CACHE_DIR,
     connect_timeout_s: float = CONNECT_TIMEOUT_S,
+    pin_cores: bool = True,
 ) -> Iterator[Any]:
     """A Dask client: of a new ``LocalCluster`` (closed on exit), or of `scheduler`.
 
@@ -161,6 +188,8 @@ def dask_client(
     - `cache_dir`: JAX's persistent compilation cache on the workers (None: none).
     - `connect_timeout_s`: how long to wait for `scheduler` to answer, and then for it to
       have a worker.
+    - `pin_cores`: pin each LocalCluster worker to a core of its own (cyclically when
+      there are more workers than cores; Linux only, see :func:`pin_to_core`).
 
     **Raises:** :class:`~invglare.errors.ConfigError` for a malformed address, a scheduler
     that does not answer within `connect_timeout_s`, one without workers, or fewer than
@@ -172,7 +201,7 @@ def dask_client(
     # The scheduler and nannies of a LocalCluster run in this process: their routine
     # messages (workers starting, closing, being killed at exit) are not the user's news.
     logging.getLogger("distributed").setLevel(logging.ERROR)
-    plugin = JaxWorkerSetup(None if cache_dir is None else str(cache_dir))
+    cache = None if cache_dir is None else str(cache_dir)
     if scheduler is not None:
         address = check_address(scheduler)
         try:
@@ -193,7 +222,8 @@ def dask_client(
                     f"{connect_timeout_s:g} s; start some with `dask worker {address} "
                     "--nthreads 1`"
                 ) from None
-            client.register_plugin(plugin)
+            # A cluster started elsewhere places its workers itself: nothing pinned.
+            client.register_plugin(JaxWorkerSetup(cache))
             yield client
         finally:
             client.close()
@@ -213,7 +243,7 @@ def dask_client(
     try:
         client = Client(cluster)
         try:
-            client.register_plugin(plugin)
+            client.register_plugin(JaxWorkerSetup(cache, pin=pin_cores))
             yield client
         finally:
             client.close()

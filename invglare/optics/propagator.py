@@ -119,13 +119,9 @@ class AbstractPropagator(eqx.Module):
         """The method's own config keys (the ``[model.<method>]`` table), or ``{}``."""
 
 
-class FraunhoferFFT(AbstractPropagator):
-    """Far field by an FFT of the field zero-padded to `fft_npix`: pixels of
-    ``lambda / (fft_npix * pitch)`` rad at the wavelength the model was built for."""
-
-    fft_npix: int = eqx.field(static=True, kw_only=True)
-    propagation: ClassVar[str] = "fraunhofer"
-    method: ClassVar[str] = "fft"
+class AbstractDiscretePropagator(AbstractPropagator):
+    """A discrete transform of the raster (FFT, MFT, transfer function): nothing to decide
+    on a concrete field beforehand and no options of its own."""
 
     takes: ClassVar[str] = "raster"
 
@@ -135,12 +131,21 @@ class FraunhoferFFT(AbstractPropagator):
     def options(self):
         return {}
 
+
+class FraunhoferFFT(AbstractDiscretePropagator):
+    """Far field by an FFT of the field zero-padded to `fft_npix`: pixels of
+    ``lambda / (fft_npix * pitch)`` rad at the wavelength the model was built for."""
+
+    fft_npix: int = eqx.field(static=True, kw_only=True)
+    propagation: ClassVar[str] = "fraunhofer"
+    method: ClassVar[str] = "fft"
+
     def __call__(self, field, wavelength_nm, *, open_area_mm2=None):
-        area_px = None if open_area_mm2 is None else open_area_mm2 / self.grid.pitch_mm**2
+        area_px = _area_px(open_area_mm2, self.grid)
         return intensity_fft(field, self.fft_npix, self.output.npix, open_area_px=area_px)
 
 
-class FraunhoferMFT(AbstractPropagator):
+class FraunhoferMFT(AbstractDiscretePropagator):
     """Far field by matrix Fourier transform: any output pixel scale and field.
 
     With `core_npix` (static) below the output's size, the transform covers only the
@@ -153,14 +158,6 @@ class FraunhoferMFT(AbstractPropagator):
     propagation: ClassVar[str] = "fraunhofer"
     method: ClassVar[str] = "mft"
 
-    takes: ClassVar[str] = "raster"
-
-    def prepared(self, field):
-        return self
-
-    def options(self):
-        return {}
-
     def __call__(self, field, wavelength_nm, *, open_area_mm2=None):
         if self.core_npix is None or self.core_npix >= self.output.npix:
             return fraunhofer_mft(
@@ -171,20 +168,12 @@ class FraunhoferMFT(AbstractPropagator):
         return pad_centred(psf, self.output.npix)
 
 
-class FresnelFFT(AbstractPropagator):
+class FresnelFFT(AbstractDiscretePropagator):
     """Eq. 3 of Ritschel et al.: the field times ``E = exp(i pi r^2 / (lambda f))``, one FFT."""
 
     fft_npix: int = eqx.field(static=True, kw_only=True)
     propagation: ClassVar[str] = "fresnel"
     method: ClassVar[str] = "fft"
-
-    takes: ClassVar[str] = "raster"
-
-    def prepared(self, field):
-        return self
-
-    def options(self):
-        return {}
 
     def __call__(self, field, wavelength_nm, *, open_area_mm2=None):
         # The phase leaves the power through the aperture as it is: measured before it.
@@ -195,19 +184,11 @@ class FresnelFFT(AbstractPropagator):
         return intensity_fft(field, self.fft_npix, self.output.npix, open_area_px=area_px)
 
 
-class FresnelMFT(AbstractPropagator):
+class FresnelMFT(AbstractDiscretePropagator):
     """Eq. 3 of Ritschel et al. at any output sampling (matrix Fourier transform)."""
 
     propagation: ClassVar[str] = "fresnel"
     method: ClassVar[str] = "mft"
-
-    takes: ClassVar[str] = "raster"
-
-    def prepared(self, field):
-        return self
-
-    def options(self):
-        return {}
 
     def __call__(self, field, wavelength_nm, *, open_area_mm2=None):
         if open_area_mm2 is None:
@@ -359,7 +340,7 @@ def _area_px(open_area_mm2: ArrayLike | None, grid: ApertureGrid) -> Float[Array
     return None if open_area_mm2 is None else jnp.asarray(open_area_mm2) / grid.pitch_mm**2
 
 
-class FresnelTransfer(AbstractPropagator):
+class FresnelTransfer(AbstractDiscretePropagator):
     """Eq. 3 of Ritschel et al. at a short distance, on the image plane, without aliasing.
 
     The aperture convolved with the Fresnel kernel (:func:`~invglare.optics.fresnel.
@@ -373,14 +354,6 @@ class FresnelTransfer(AbstractPropagator):
     fft_npix: int = eqx.field(static=True, kw_only=True)
     propagation: ClassVar[str] = "fresnel"
     method: ClassVar[str] = "transfer"
-    takes: ClassVar[str] = "raster"
-
-    def prepared(self, field):
-        return self
-
-    def options(self):
-        return {}
-
     def __call__(self, field, wavelength_nm, *, open_area_mm2=None):
         return fresnel_near_field(
             field, self.grid, wavelength_nm, self.focal_length_mm, self.fft_npix,

@@ -185,3 +185,27 @@ def test_psf_command_reports_the_veiling_glare_index(tmp_path):
     header = read_exr(out).attrs
     assert 0.0 < header["veilingGlareIndex"] < 1.0
     assert header["vgiSpotRadiusDeg"] == 0.5
+
+
+@pytest.mark.parametrize("reader", ["eye", "camera"])
+def test_image_tables_of_eyes_and_cameras_take_their_default_roles(reader, tmp_path):
+    """``obstacle_image`` blocks and ``pupil_image`` lets light through unless the table
+    says otherwise, in an eye and a camera alike; a ``kind`` there is refused by name."""
+    from invglare.config.camera import camera_from_config
+    from invglare.config.eye import eye_from_config
+    from invglare.files.images import write_png
+
+    write_png(tmp_path / "mask.png", np.eye(16))
+    build = eye_from_config if reader == "eye" else camera_from_config
+    base = (
+        {"pupil": {"diameter_mm": 3.0}}
+        if reader == "eye"
+        else {"diaphragm": {"n_blades": 6, "f_number": 8.0, "focal_length_mm": 50.0}}
+    )
+    image = {"path": "mask.png", "width_mm": 4.0}
+    built = build({**base, "obstacle_image": image, "pupil_image": image}, reader, tmp_path)
+    assert (built.obstacle_image.role, built.pupil_image.role) == ("block", "open")
+    swapped = build({**base, "obstacle_image": {**image, "role": "open"}}, reader, tmp_path)
+    assert swapped.obstacle_image.role == "open" and swapped.pupil_image is None
+    with pytest.raises(ConfigError, match=rf"{reader}\.pupil_image is an image: drop its key"):
+        build({**base, "pupil_image": {**image, "kind": "image"}}, reader, tmp_path)
