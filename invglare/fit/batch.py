@@ -139,8 +139,8 @@ def pin_to_core(index: int) -> int | None:
     Why: XLA's CPU runtime runs independent operations of a program on a thread pool of
     its own, which the ``XLA_FLAGS`` of :func:`worker_env` do not shrink. An unpinned
     worker's fit of a population photo kept 1.5 cores busy (measured, 2-core machine), so
-    two workers on two cores fought over them. Call it before JAX's backend starts: the
-    pool is sized by the cores this process may use, then one.
+    two workers on two cores fought over them; pinned, it keeps one. Call it before
+    JAX's backend starts, whose threads then start on that core too.
     """
     if not hasattr(os, "sched_setaffinity"):
         return None
