@@ -5,9 +5,12 @@ The eye and Kakimoto cases and the fit benchmark compile large XLA programs (min
 busy 2-core machine), so they are marked slow.
 """
 
+import importlib.util
 import json
 import math
+import sys
 import time
+from pathlib import Path
 
 import jax
 import numpy as np
@@ -334,12 +337,24 @@ def test_fit_benchmark_plumbing_on_a_small_disk(tmp_path):
 # the sampling benchmark
 
 
+def _fit_cli_helpers():
+    """`invoke`, `make_problem` and `write_fit` of tests/fit/test_fit_cli.py (its small disk
+    fit), loaded from its file so that tests/bench also runs on its own."""
+    path = Path(__file__).resolve().parents[1] / "fit" / "test_fit_cli.py"
+    module = sys.modules.get("test_fit_cli")
+    if module is None:
+        spec = importlib.util.spec_from_file_location("test_fit_cli", path)
+        module = importlib.util.module_from_spec(spec)
+        spec.loader.exec_module(module)
+    return module.invoke, module.make_problem, module.write_fit
+
+
 def test_sample_benchmark_times_batched_and_per_walker_steps_of_a_fit(tmp_path):
     """A small disk fit, then emcee steps of its posterior in every mode; with a committed
     chain's tau, the effective samples per second follow from the step time."""
-    from test_fit_cli import invoke, make_problem, write_fit
-
     from invglare.bench.sample import run_sample_benchmark, sample_markdown
+
+    invoke, make_problem, write_fit = _fit_cli_helpers()
 
     make_problem(tmp_path)
     config = write_fit(tmp_path)
