@@ -449,7 +449,11 @@ def fit_batch(
         ),
     ] = None,
     workers: Annotated[
-        int | None, typer.Option(help="Worker processes of the local cluster (default: cores).")
+        int | None,
+        typer.Option(
+            help="Worker processes of the local cluster (default: cores), each pinned to a "
+            "core of its own on Linux."
+        ),
     ] = None,
     vmap: Annotated[
         int, typer.Option(help="Fit up to this many same-size photos in one vmapped solve.")
