@@ -354,6 +354,7 @@ class FresnelTransfer(AbstractDiscretePropagator):
     fft_npix: int = eqx.field(static=True, kw_only=True)
     propagation: ClassVar[str] = "fresnel"
     method: ClassVar[str] = "transfer"
+
     def __call__(self, field, wavelength_nm, *, open_area_mm2=None):
         return fresnel_near_field(
             field, self.grid, wavelength_nm, self.focal_length_mm, self.fft_npix,
