@@ -518,7 +518,6 @@ class HolographicEye(AbstractGlareModel):
         n, m = self.npix, self.layer_npix
         # The layers' grid: the central m x m samples of the channel's N x N grid.
         grid = ApertureGrid(m, lam * 1e-6 / (n * self.sampling.pixel_scale_rad))
-        shift = jnp.fft.ifftshift
 
         def element(name: str):
             if name == "spectacles":
@@ -554,8 +553,8 @@ class HolographicEye(AbstractGlareModel):
             first, transmissions, kernels = last, [], ()
         if m < n:
             first = first * crop_taper(m, TAPER_PX)
-        front = shift(chirps * first[None], axes=(-2, -1))
-        trans = tuple(shift(t.astype(front.dtype)) for t in transmissions)
+        front = chirps * first[None]
+        trans = tuple(t.astype(front.dtype) for t in transmissions)
         return ChannelStack(front, kernels, trans, gain, n)
 
     def stacks(self, vergences_per_mm, time_s=0.0) -> ChannelStack:

@@ -21,6 +21,7 @@ from invglare.optics.holographic import (
     speckle_free,
     stack_field,
 )
+from invglare.optics.holographic import stack as stack_module
 from invglare.optics.holographic.stack import tile_weights
 
 LAM_NM = 550.0
@@ -34,22 +35,52 @@ def _stack(mask_in_front: bool, pupil_mm: float = 2.5):
     s = HoloSampling.from_window(N, 8.0, (LAM_NM,))
     g = s.grid(LAM_NM)
     pupil = Pupil(pupil_mm).coverage(g)
-    sh = jnp.fft.ifftshift
     gain = 1.0 / jnp.mean(pupil)
     if not mask_in_front:
-        return ChannelStack(sh(pupil.astype(jnp.complex64))[None], (), (), gain)
+        return ChannelStack(pupil.astype(jnp.complex64)[None], (), (), gain)
     rng = np.random.default_rng(5)
     screen = (rng.random((N, N)) > 0.5).astype(np.complex64)
     return ChannelStack(
-        sh(jnp.asarray(screen))[None],
+        jnp.asarray(screen)[None],
         (propagation_kernel(g, LAM_NM, 60.0).astype(jnp.complex64),),
-        (sh(pupil.astype(jnp.complex64)),),
+        (pupil.astype(jnp.complex64),),
         gain,
     )
 
 
 def _batch(stack):
     return jax.tree.map(lambda x: x[None], stack)
+
+
+@pytest.mark.parametrize("whole", [True, False], ids=["whole-fft", "pruned-fft"])
+@pytest.mark.parametrize("m", [64, 40, 39])
+def test_stack_field_is_the_field_of_the_written_out_stack(m, whole, monkeypatch):
+    # The stack's field, written out with numpy in FFT layout: the whole inverse FFT of the
+    # bins, its centred m x m crop times the front, one angular-spectrum step and a
+    # transmission, zero-padded back to N around the centre and transformed to the retina.
+    # Checks the centring ramp (phase included) for the whole grid, an even and an odd crop,
+    # with the base layer's window from a whole and from a pruned inverse FFT.
+    monkeypatch.setattr(stack_module, "WHOLE_FFT_MAX_NPIX", N if whole else 0)
+    rng = np.random.default_rng(11)
+
+    def cplx(*shape):
+        return (rng.standard_normal(shape) + 1j * rng.standard_normal(shape)).astype(np.complex128)
+
+    bins, front, trans = cplx(N, N), cplx(m, m), cplx(m, m)
+    kernel = np.exp(1j * rng.uniform(0, 2 * np.pi, (m, m)))
+    lo = N // 2 - m // 2
+    window = np.fft.fftshift(np.fft.ifft2(bins, norm="ortho"))[lo : lo + m, lo : lo + m]
+    u = np.fft.ifft2(np.fft.fft2(window * front) * kernel) * trans
+    padded = np.zeros((N, N), complex)
+    padded[lo : lo + m, lo : lo + m] = u
+    want = np.fft.fft2(np.fft.ifftshift(padded), norm="ortho")
+    with jax.enable_x64(True):
+        stack = ChannelStack(
+            jnp.asarray(front)[None], (jnp.asarray(kernel),), (jnp.asarray(trans),),
+            jnp.ones(()), N,
+        )  # fmt: skip
+        got = np.asarray(stack_field(jnp.asarray(bins), stack))
+    np.testing.assert_allclose(got, want, rtol=0, atol=1e-12 * np.abs(want).max())
 
 
 def test_speckle_contrast_falls_as_one_over_sqrt_n():
