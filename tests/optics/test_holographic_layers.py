@@ -85,13 +85,8 @@ def test_phase_only_layers_and_propagation_conserve_energy():
 
 
 def _clear_stack(front, kernels=(), transmissions=()):
-    shift = jnp.fft.ifftshift
-    return ChannelStack(
-        shift(front)[None],
-        tuple(kernels),
-        tuple(shift(t) for t in transmissions),
-        jnp.ones(()),
-    )
+    """A one-layer stack of centred planes (as the model builds them)."""
+    return ChannelStack(front[None], tuple(kernels), tuple(transmissions), jnp.ones(()))
 
 
 def test_sinusoidal_tear_film_zero_order_is_bessel_closed_form():

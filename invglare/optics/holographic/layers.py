@@ -75,10 +75,12 @@ def vergence_chirp(
     ``-X / z``. ``V > 0`` diverges (a near source), ``V = 0`` is a plane wave.
     """
     lam = nm_to_mm(wavelength_nm)
-    # Separable, exp(a x^2) exp(a y^2): 2 n exponentials instead of n^2.
+    # Separable, exp(a x^2) exp(a y^2): 2 n exponentials instead of n^2 (per vergence: an
+    # array of vergences gives a chirp each, leading axes first).
     c = grid.coords_mm()
-    along = jnp.exp(1j * (math.pi * jnp.asarray(vergence_per_mm) / lam) * (c * c))
-    return along[:, None] * along[None, :]
+    a = math.pi * jnp.asarray(vergence_per_mm)[..., None] / lam
+    along = jnp.exp(1j * a * (c * c))
+    return along[..., :, None] * along[..., None, :]
 
 
 def thin_lens_phase(

@@ -81,18 +81,18 @@ class ChannelStack(eqx.Module):
     - `gain`: ``1 / (transmitted fraction of the clear pupil)`` over the output grid.
     - `npix_out`: the output grid ``N`` (static); ``m < N`` is a *cropped* stack.
 
-    **Cropped stacks.** Only the light that reaches the pupil matters, and between the
-    base plane and the pupil it stays within ``d tan(theta_max)`` of where it will pass:
-    a disk of the pupil's radius plus that walk, usually a fraction of the window. A
-    cropped stack runs the layers on the central ``m x m`` samples of the same pitch: the
-    base layer's inverse FFT is evaluated only there (rows, then the kept columns: a
-    pruned transform), the layers' transfer functions are ``m``-point ones, and the
-    retina's FFT zero-pads the pupil field back to ``N`` (pruned again). The fronts carry
-    a smooth taper over the crop's outer margin so that the cropped field has no edge to
-    diffract from; the pupil's light never comes from there, so the pupil field is that of
-    the full grid (the tests compare the two). Cost per channel and iteration: two
-    ``3/4`` size-``N`` FFTs and ``m``-point ones for the layers, instead of
-    ``2 + 2 x planes`` size-``N`` FFTs.
+    **Cropped stacks.** Only the light that reaches the pupil matters, and between the base
+    plane and the pupil it stays within ``d tan(theta_max)`` of where it will pass: a disk of
+    the pupil's radius plus that walk, usually a fraction of the window. A cropped stack runs
+    the layers on the central ``m x m`` samples of the same pitch: the base layer's inverse FFT
+    is evaluated only there (above :data:`WHOLE_FFT_MAX_NPIX`, rows, then the kept columns: a
+    pruned transform), the layers' transfer functions are ``m``-point ones, and the retina's FFT
+    zero-pads the pupil field back to ``N`` (pruned again). The fronts carry a smooth taper over
+    the crop's outer margin so that the cropped field has no edge to diffract from; the pupil's
+    light never comes from there, so the pupil field is that of the full grid (the tests compare
+    the two). Cost per channel and iteration: two pruned size-``N`` FFTs (``(1 + m / N) / 2`` of
+    a whole one each) and ``m``-point ones for the layers, instead of ``2 + 2 x planes``
+    size-``N`` FFTs.
     """
 
     front: Complex[Array, "l m m"]
@@ -259,7 +259,8 @@ def iterate_intensity(
       :func:`~invglare.optics.holographic.sources.random_phasors`); the channels share
       each draw's phases.
     - `chunk`: draws propagated at once (`vmap`); memory is `chunk` times
-      :func:`iteration_bytes`. With ``chunk = 1`` the channels run one after another too.
+      :func:`iteration_bytes`. When a chunk holds one draw (``chunk = 1``, or one
+      iteration) the channels run one after another too.
     - `progress`: show a progress bar over the chunks (runs a Python loop of jitted
       chunks: not for use inside `jit` / `grad`).
 
