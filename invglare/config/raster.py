@@ -30,7 +30,8 @@ shapes has a default)::
 
     [spectrum]
     wavelengths_nm = 550          # a number, a list, or "380:770:32"
-    spectral = "exact"            # or "scaled" (copies of the reference PSF)
+    spectral = "exact"            # "scaled" (copies of the reference PSF), or the
+                                  # near-field approximation "near_field_heuristic"
     reference_wavelength_nm = 575.0
     illuminant = "E"              # colour-science illuminant name, or "E"
     colourspace = "sRGB"          # linear RGB space of a spectral PSF

@@ -103,7 +103,12 @@ from invglare.models.structures import check_structures
 from invglare.optics.fraunhofer import transmitted_power
 from invglare.optics.particles import particle_scatter
 from invglare.optics.propagator import AbstractPropagator
-from invglare.optics.spectral import DEFAULT_WAVELENGTHS, Spectrum, parse_wavelengths
+from invglare.optics.spectral import (
+    COPY_METHODS,
+    DEFAULT_WAVELENGTHS,
+    Spectrum,
+    parse_wavelengths,
+)
 
 __all__ = [
     "AIRY_FIRST_ZERO",
@@ -324,7 +329,8 @@ class KakimotoGlare(AbstractRasterModel):
                 colourspace=colourspace,
             )
             spectrum = Spectrum.build(wl, **kwargs)
-            sampling = spectrum if spectral == "scaled" else Spectrum.build(np.sort(wl), **kwargs)
+            copies = spectral in COPY_METHODS
+            sampling = spectrum if copies else Spectrum.build(np.sort(wl), **kwargs)
         propagator = build_propagator(
             float(aperture.extent_mm()),
             sampling,

@@ -66,6 +66,12 @@ def build_propagator(
             f"the aperture ({extent_mm:g} mm across) does not fit in window_mm = {window_mm:g}"
         )
     computed = spectrum.computed_wavelengths_nm
+    if spectrum.spectral == "near_field_heuristic" and propagation != "fresnel":
+        raise ConfigError(
+            "spectral = 'near_field_heuristic' approximates near-field (propagation = "
+            f"'fresnel') spectra; with propagation = {propagation!r} use spectral = 'scaled' "
+            "(exact in the far field) or 'exact'"
+        )
     if method == "fft" and spectrum.is_spectral and spectrum.spectral == "exact":
         raise ConfigError(
             "a spectral PSF on the FFT path needs spectral = 'scaled'; for exact "

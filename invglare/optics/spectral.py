@@ -14,6 +14,11 @@ reference wavelength yields every wavelength by resampling (the "chromatic blur"
 of the temporal-glare model, which uses 575 nm and 32 samples). :func:`scale_psf`
 does the resampling; :func:`scaled_copies_xyz` sums the copies.
 
+In the Fresnel (near-field) regime no such scaling holds. Scandolo et al. (2018, sec. 4.5,
+fig. 7) note that copies magnified by much smaller amounts still look plausible; that
+heuristic is here as a named approximation (``spectral = "near_field_heuristic"``,
+:func:`near_field_heuristic_factors`), never the default.
+
 Weight tables are constants built with numpy and colour-science (imported lazily:
 it takes about a second to import); everything that touches a PSF is pure JAX.
 """
@@ -505,7 +510,40 @@ def spectral_psf_rgb(
     return xyz_to_rgb(scaled_copies_xyz(psf_ref, ref_wavelength_nm, wl, weights), colourspace)
 
 
-SPECTRAL_METHODS = ("exact", "scaled")
+#: ``"exact"``: one PSF per wavelength; ``"scaled"``: copies of the reference PSF magnified
+#: by ``lambda / lambda_ref`` (exact in the far field); ``"near_field_heuristic"``: copies
+#: magnified by :func:`near_field_heuristic_factors` (Scandolo et al.'s approximation for
+#: near-field spectra: plausible, not physically accurate).
+SPECTRAL_METHODS = ("exact", "scaled", "near_field_heuristic")
+#: The spectral methods that evaluate the reference wavelength only and resample it.
+COPY_METHODS = ("scaled", "near_field_heuristic")
+#: The strength of the near-field heuristic: Scandolo et al.'s ``0.05``.
+NEAR_FIELD_HEURISTIC_STRENGTH = 0.05
+
+
+def near_field_heuristic_factors(
+    wavelengths_nm: Float[ArrayLike, " nwl"],
+    ref_wavelength_nm: ArrayLike,
+    strength: float = NEAR_FIELD_HEURISTIC_STRENGTH,
+) -> Float[Array, " nwl"]:
+    """Magnifications of the near-field heuristic (Scandolo et al. 2018, sec. 4.5, fig. 7b).
+
+    The far-field copy at ``lambda`` reads the reference PSF at ``rho q``, with the
+    paper's relative wavelength scale ``rho = lambda_ref / lambda`` (their eq. 14): a
+    magnification ``1 / rho``. For near-field PSFs the paper reads it at
+    ``(1 + 0.05 (1 - p)) q`` instead and calls the result plausible but no longer
+    physically accurate. It leaves ``p`` undefined; we take ``p = rho``. The copies then
+    move the opposite way to the far field's, by about 5 % of its amount (at 400 nm
+    against a 529 nm reference: magnification 1.017, the far field's 0.756). Of the
+    readings we tried (``p = rho``, ``p = 1 / rho``, ``p`` the position in the sampled
+    range, no scaling), this one came nearest the exact per-wavelength sum for a heptagon
+    at Fresnel numbers 3 to 20 (L1 error 9-14 % of the image; no scaling 10-14 %, the
+    far-field scaling 35-46 %). Returns the magnifications ``1 / (1 + strength (1 - rho))``
+    for :func:`scaled_copies`.
+    """
+    wl = jnp.asarray(wavelengths_nm)
+    rho = jnp.asarray(ref_wavelength_nm, wl.dtype) / wl
+    return 1.0 / (1.0 + strength * (1.0 - rho))
 
 
 class Spectrum(eqx.Module):
@@ -514,7 +552,8 @@ class Spectrum(eqx.Module):
     :meth:`integrate` turns a function ``wavelength_nm -> unit-energy PSF`` into the
     model's output: the PSF itself for one wavelength; otherwise linear RGB in
     `colourspace`, either by evaluating every wavelength (``"exact"``) or from
-    scaled copies of the `reference_wavelength_nm` PSF (``"scaled"``).
+    scaled copies of the `reference_wavelength_nm` PSF (``"scaled"``, or the near-field
+    approximation ``"near_field_heuristic"``: see :data:`SPECTRAL_METHODS`).
     """
 
     wavelengths_nm: Float[Array, " w"] = eqx.field(converter=jnp.asarray)
@@ -538,7 +577,8 @@ class Spectrum(eqx.Module):
     ) -> Spectrum:
         """Validate the choices and build the XYZ weight table (colour-science).
 
-        `copy_weighting` (:data:`COPY_WEIGHTINGS`) applies to ``spectral = "scaled"``.
+        `copy_weighting` (:data:`COPY_WEIGHTINGS`) applies to the copy methods
+        (:data:`COPY_METHODS`).
         """
         if copy_weighting not in COPY_WEIGHTINGS:
             raise ConfigError(
@@ -570,7 +610,7 @@ class Spectrum(eqx.Module):
         """The wavelengths at which a PSF is actually evaluated (concrete values)."""
         if not self.is_spectral:
             return (float(self.wavelengths_nm[0]),)
-        if self.spectral == "scaled":
+        if self.spectral in COPY_METHODS:
             return (self.reference_wavelength_nm,)
         return tuple(float(w) for w in self.wavelengths_nm)
 
@@ -589,6 +629,16 @@ class Spectrum(eqx.Module):
                 self.weights_xyz,
                 self.copy_weighting,
             )
+        elif self.spectral == "near_field_heuristic":
+            reference = monochrome(jnp.asarray(self.reference_wavelength_nm))
+            dtype = reference.dtype
+            factors = near_field_heuristic_factors(
+                jnp.asarray(self.wavelengths_nm, dtype), self.reference_wavelength_nm
+            )
+            weights = copy_weights(
+                jnp.asarray(self.weights_xyz, dtype), factors, self.copy_weighting
+            )
+            xyz = jnp.moveaxis(scaled_copies(reference, factors, weights), 0, -1)
         else:
             xyz = psf_to_xyz(jax.vmap(monochrome)(self.wavelengths_nm), self.weights_xyz)
         return xyz_to_rgb(xyz, self.colourspace)
