@@ -50,6 +50,18 @@ def test_progressive_equals_full_evaluation_over_60_frames(distance_mm):
     assert [s.full for s in prog.stats] == [True] + [False] * 59
 
 
+def test_moving_shadow_is_the_anti_aliased_disk_it_describes():
+    """Each frame is the aperture times ``1 - clip(radius + 0.5 - r, 0, 1)`` over the whole
+    raster (computed near the shadow only), also where the shadow leaves the raster."""
+    aperture = np.random.default_rng(3).random((40, 28))
+    frame = moving_shadow(aperture, 6.3, (-4.0, 9.2), (3.1, 1.4))
+    yy, xx = np.mgrid[0:40, 0:28].astype(np.float64)
+    for t in range(0, 16):
+        r = np.hypot(xx - (-4.0 + 3.1 * t), yy - (9.2 + 1.4 * t))
+        expected = aperture * (1.0 - np.clip(6.3 + 0.5 - r, 0.0, 1.0))
+        np.testing.assert_allclose(frame(t), expected, rtol=0, atol=1e-15)
+
+
 def test_progressive_handles_a_closed_aperture_and_refuses_bad_frames():
     grid = paper_grid(32)
     aperture = paper_raster("circle", 32)

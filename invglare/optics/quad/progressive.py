@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import math
 import time
 from collections.abc import Callable
 
@@ -74,20 +75,34 @@ def _support(raster: np.ndarray) -> tuple[int, int, int, int] | None:
     return int(rows[0]), int(rows[-1]) + 1, int(cols[0]), int(cols[-1]) + 1
 
 
-def quads_of(raster: np.ndarray, base_level: int, sign: float = 1.0):
+def quads_of(
+    raster: np.ndarray,
+    base_level: int,
+    sign: float = 1.0,
+    origin: tuple[int, int] = (0, 0),
+):
     """The quads of a raster's non-zero box (a difference is a thin crescent: its box is
-    small) as pixel rectangles of the whole raster with their amplitudes (times `sign`)."""
+    small) as pixel rectangles, placed at `origin` (row, column: where `raster`, a crop,
+    sits in the whole raster), with their amplitudes (times `sign`).
+
+    The box is widened to a square whose side is a power of two (zeros beyond the
+    raster), the shape the quadtree takes without padding it again itself.
+    """
     box = _support(raster)
     if box is None:
         return None
     r0, r1, c0, c1 = box
     cell = 1 << base_level
-    r0, c0 = r0 - r0 % cell, c0 - c0 % cell  # keep the cells on the raster's own grid
-    crop = raster[r0:r1, c0:c1]
+    r0 -= (r0 + origin[0]) % cell  # keep the cells on the whole raster's own grid
+    c0 -= (c0 + origin[1]) % cell
+    side = max(cell, 1 << math.ceil(math.log2(max(r1 - r0, c1 - c0))))
+    crop = raster[r0 : r0 + side, c0 : c0 + side]
+    if crop.shape != (side, side):
+        crop = np.pad(crop, ((0, side - crop.shape[0]), (0, side - crop.shape[1])))
     layout = build_quadtree(crop, base_level=base_level, band=None)
     levels = layout.intensities_numpy(crop)
     amps = sign * levels[layout.group] * layout.sign
-    return layout.x0 + c0, layout.y0 + r0, layout.w, layout.h, amps
+    return layout.x0 + c0 + origin[1], layout.y0 + r0 + origin[0], layout.w, layout.h, amps
 
 
 def frame_plan(parts, shape: tuple[int, int]):
@@ -212,11 +227,17 @@ class ProgressiveQuads:
             terms = None
         else:
             diff = arr - self._raster
-            # The paper's two channels: disoccluded (positive) and occluded (negative) light.
-            parts = [
-                quads_of(np.maximum(diff, 0.0), self.base_level),
-                quads_of(np.maximum(-diff, 0.0), self.base_level, -1.0),
-            ]
+            box = _support(diff)
+            parts = []
+            if box is not None:
+                r0, r1, c0, c1 = box
+                crop = diff[r0:r1, c0:c1]
+                # The paper's two channels: disoccluded (positive) and occluded (negative)
+                # light, each with its own quadtree.
+                parts = [
+                    quads_of(np.maximum(crop, 0.0), self.base_level, 1.0, (r0, c0)),
+                    quads_of(np.maximum(-crop, 0.0), self.base_level, -1.0, (r0, c0)),
+                ]
             terms = self._terms
         self._terms, psf, quads = self._evaluate(terms, parts, arr)
         psf = np.asarray(psf)
@@ -235,14 +256,23 @@ def moving_shadow(
     """The paper's animation (sec. 5.1): a circular shadow over an aperture, moving by
     `velocity_px` (x, y) pixels per frame; returns ``frame(t) -> raster``. The shadow's
     edge is anti-aliased (a linear ramp one pixel wide across its radius)."""
-    n = aperture.shape[0]
-    yy, xx = np.mgrid[0:n, 0:n].astype(np.float64)
+    aperture = np.asarray(aperture, np.float64)
+    n_rows, n_cols = aperture.shape
+    reach = radius_px + 1.0  # the ramp reaches radius + 0.5
 
     def frame(t: int) -> np.ndarray:
         cx = start_px[0] + t * velocity_px[0]
         cy = start_px[1] + t * velocity_px[1]
+        out = aperture.copy()
+        # Only the pixels the shadow can reach change (the shadow is small; an n x n
+        # pass per frame would cost more than the update it feeds).
+        r0, r1 = max(0, math.floor(cy - reach)), min(n_rows, math.ceil(cy + reach) + 1)
+        c0, c1 = max(0, math.floor(cx - reach)), min(n_cols, math.ceil(cx + reach) + 1)
+        if r0 >= r1 or c0 >= c1:
+            return out
+        yy, xx = np.ogrid[r0:r1, c0:c1]
         r = np.hypot(xx - cx, yy - cy)
-        shadow = np.clip(radius_px + 0.5 - r, 0.0, 1.0)
-        return aperture * (1.0 - shadow)
+        out[r0:r1, c0:c1] *= 1.0 - np.clip(radius_px + 0.5 - r, 0.0, 1.0)
+        return out
 
     return frame

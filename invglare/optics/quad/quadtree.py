@@ -344,6 +344,8 @@ def build_quadtree(raster, *, base_level: int = 0, band: int | None = 0) -> Quad
     grp = np.where(uni, cell_group, -1)
     size = cell
     while uni.shape[0] > 1:
+        if not np.any(uni & (grp >= 0)):
+            break  # no uniform non-zero cell left: no level above can emit a quad
         uni, grp = _merge_level(uni, grp, size, emit)
         size *= 2
     if uni[0, 0] and grp[0, 0] >= 0:
