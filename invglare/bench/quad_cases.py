@@ -334,31 +334,29 @@ def quad_markdown(records: list[dict]) -> list[str]:
                 lines.append(
                     f"| quad_far_{name} | {n} | {r['median_ms']:.2f} | {cell(r['ratio'])} | |"
                 )
-    for variant in ("none", "cull", "sym", "both"):
-        case = "quad_far_heptagon" if variant == "both" else f"quad_table2_{variant}"
-        for n in sizes:
-            if ms(case, n) is not None:
+    def paper_rows(title: str, table: dict, case_of, with_ratio: bool = False):
+        """One row per variant and N measured here, beside the paper's value."""
+        for key in table:
+            case = case_of(key)
+            for n in sizes:
+                if ms(case, n) is None:
+                    continue
+                label = f"{title} {key} ({case})" if with_ratio else f"{title} {key}"
+                ratio = f" {cell(by_key[(case, n)]['ratio'])} " if with_ratio else " "
                 lines.append(
-                    f"| Table 2 {variant} ({case}) | {n} | {cell(ms(case, n))} | "
-                    f"{cell(by_key[(case, n)]['ratio'])} | "
-                    f"{cell(paper(PAPER_TABLE2, variant, n))} |"
+                    f"| {label} | {n} | {cell(ms(case, n))} |{ratio}| "
+                    f"{cell(paper(table, key, n))} |"
                 )
-    for variant in ("full", "batch"):
-        for n in sizes:
-            case = f"quad_spectral_{variant}"
-            if ms(case, n) is not None:
-                lines.append(
-                    f"| Table 3 {variant} | {n} | {cell(ms(case, n))} | | "
-                    f"{cell(paper(PAPER_TABLE3, variant, n))} |"
-                )
-    for key in ("padded", *PAPER_APERTURES):
-        case = "quad_near_padded" if key == "padded" else f"quad_near_{key}"
-        for n in sizes:
-            if ms(case, n) is not None:
-                lines.append(
-                    f"| Table 4 {key} | {n} | {cell(ms(case, n))} | | "
-                    f"{cell(paper(PAPER_TABLE4, key, n))} |"
-                )
+
+    paper_rows(
+        "Table 2", PAPER_TABLE2,
+        lambda v: "quad_far_heptagon" if v == "both" else f"quad_table2_{v}", with_ratio=True,
+    )  # fmt: skip
+    paper_rows("Table 3", PAPER_TABLE3, lambda v: f"quad_spectral_{v}")
+    paper_rows(
+        "Table 4", PAPER_TABLE4,
+        lambda k: "quad_near_padded" if k == "padded" else f"quad_near_{k}",
+    )  # fmt: skip
     lines += ["", "Ratios measured side by side in this run:", ""]
     lines += [
         "| N | aperture | far / floor | far / fft path | far / mft path | progressive "

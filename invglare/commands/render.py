@@ -87,7 +87,7 @@ def run_render(
     config = precheck_model_config(model_path)  # a typo is reported before JAX loads
     import jax.numpy as jnp
 
-    from invglare.render import convolve_psf, replace_with_billboards, validate_scene
+    from invglare.render import convolve_psf, replace_with_billboards
 
     _check_render_options(mode, threshold, max_bright, tonemap_name, exposure, pixel_scale_deg)
     if frames is not None or fps is not None:
@@ -97,13 +97,7 @@ def run_render(
         run_scene_render(scene, model_path, out, tonemap_name, exposure, iterations, depth, seed)
         return
     out = output_file(out, "--out", OUTPUT_SUFFIXES)
-    img = _read_scene(scene)
-    image = validate_scene(img.data, name=str(scene))
-    scale = pixel_scale_deg if pixel_scale_deg is not None else img.pixel_scale_deg
-    if scale is None:
-        raise InputDataError(
-            f"{scene} has no pixelScaleDeg header; pass --pixel-scale-deg (degrees per pixel)"
-        )
+    image, scale = _read_scene_and_scale(scene, pixel_scale_deg)
     # A model whose image covers the screen (lens ghosts) is built on the scene's grid,
     # with its axis at the centre; a PSF model at its own sampling.
     model = _load_model(
@@ -201,6 +195,21 @@ def _read_scene(scene: Path):
     return read_exr(scene)
 
 
+def _read_scene_and_scale(scene: Path, pixel_scale_deg: float | None):
+    """The scene's checked image and its degrees per pixel (`pixel_scale_deg`, else its
+    header's): a still render and an animation read a scene the same way."""
+    from invglare.render import validate_scene
+
+    img = _read_scene(scene)
+    image = validate_scene(img.data, name=str(scene))
+    scale = pixel_scale_deg if pixel_scale_deg is not None else img.pixel_scale_deg
+    if scale is None:
+        raise InputDataError(
+            f"{scene} has no pixelScaleDeg header; pass --pixel-scale-deg (degrees per pixel)"
+        )
+    return image, scale
+
+
 def run_kakimoto_composite(
     image,
     model,
@@ -255,19 +264,20 @@ def run_kakimoto_composite(
 
 def _write_display(out: Path, result, scale: float, model, scene: Path) -> None:
     """Display values (already composited): a PNG as they are, an EXR holding them."""
-    from invglare.files.exr import write_exr
     from invglare.files.images import write_png
 
     if out.suffix.lower() == ".exr":
-        write_exr(
-            out,
-            result,
-            pixel_scale_deg=scale,
-            config=model.to_config(),
-            attrs={"renderMode": "kakimoto", "scene": str(scene), "values": "display [0, 1]"},
-        )
+        attrs = {"renderMode": "kakimoto", "scene": str(scene), "values": "display [0, 1]"}
+        _write_exr(out, result, scale, model, attrs)
     else:
         write_png(out, result)
+
+
+def _write_exr(out: Path, result, scale: float, model, attrs: dict) -> None:
+    """A rendered image as EXR: every render's file carries its scale and model config."""
+    from invglare.files.exr import write_exr
+
+    write_exr(out, result, pixel_scale_deg=scale, config=model.to_config(), attrs=attrs)
 
 
 def _tonemap_params(
@@ -312,18 +322,11 @@ def _tonemap_params(
 
 def _write(out: Path, result, scale: float, model, mode: str, scene: Path, tonemap_name, params):
     """A linear EXR (model config in the header) or a tone-mapped PNG."""
-    from invglare.files.exr import write_exr
     from invglare.files.images import write_png
     from invglare.render import tonemap
 
     if out.suffix.lower() == ".exr":
-        write_exr(
-            out,
-            result,
-            pixel_scale_deg=scale,
-            config=model.to_config(),
-            attrs={"renderMode": mode, "scene": str(scene)},
-        )
+        _write_exr(out, result, scale, model, {"renderMode": mode, "scene": str(scene)})
     else:
         write_png(out, np.asarray(tonemap(result, tonemap_name, **params)))
     log.info("wrote %s (%s)", out, mode)
@@ -446,7 +449,6 @@ def run_animation(
     from invglare.files.atomic import atomic_path
     from invglare.files.exr import write_exr
     from invglare.models.temporal import frame_luminance_cd_m2
-    from invglare.render import validate_scene
     from invglare.render.temporal_frames import check_display, render_sequence
 
     if frames is None:
@@ -456,13 +458,7 @@ def run_animation(
     target = _animation_target(out)
     options.count(frames, "--frames")
     options.positive(fps, "--fps")
-    img = _read_scene(scene)
-    image = validate_scene(img.data, name=str(scene))
-    scale = pixel_scale_deg if pixel_scale_deg is not None else img.pixel_scale_deg
-    if scale is None:
-        raise InputDataError(
-            f"{scene} has no pixelScaleDeg header; pass --pixel-scale-deg (degrees per pixel)"
-        )
+    image, scale = _read_scene_and_scale(scene, pixel_scale_deg)
     _check_animation_size(target, out, frames, image)
     model = _load_model(model_path)
     if not model.animated:

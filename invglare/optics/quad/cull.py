@@ -27,6 +27,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from invglare.optics.quad.plan import QuadPlan
+from invglare.optics.quad.quadtree import grown_by_one
 from invglare.optics.quad.transform import Kernel, Tiles, parity_terms
 
 #: Default tile side (output pixels): one coarse sample per 8 x 8 pixels, as in the paper.
@@ -118,13 +119,7 @@ def cull_tiles(
         )
         mask = bound**2 >= threshold * peak**2
         # Neighbours of kept tiles are kept too: a margin for what the samples miss.
-        if True:
-            grown = mask.copy()
-            grown[1:] |= mask[:-1]
-            grown[:-1] |= mask[1:]
-            grown[:, 1:] |= mask[:, :-1]
-            grown[:, :-1] |= mask[:, 1:]
-            mask = grown
+        mask = grown_by_one(mask)
         mask[0, 0] = True
         keep = mask if keep is None else keep | mask
     if keep.mean() > MAX_KEPT:

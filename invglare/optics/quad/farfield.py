@@ -21,6 +21,8 @@ sharp-edged aperture then sums to a little under 1 over the whole plane (the ras
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float
 
@@ -29,8 +31,7 @@ from invglare.optics.quad.transform import (
     Tiles,
     box_kernel,
     far_field_quadrants,
-    parity_terms,
-    quadrant_index,
+    quadrant_terms,
     unfold,
 )
 
@@ -49,17 +50,10 @@ def plan_amplitudes(
 
 
 def far_field_terms(
-    plan: QuadPlan,
-    amplitudes: Float[Array, " k"],
-    step_px: Float[ArrayLike, ""],
-    npix: int,
-    tiles: Tiles | None = None,
+    plan: QuadPlan, amplitudes: Float[Array, " k"], step_px, npix: int, tiles=None
 ) -> tuple[Array, Array, Array, Array]:
-    """The parity terms (px^2) on the quadrant of an `npix` output of pixel `step_px`,
-    only on `tiles` when given (:func:`~invglare.optics.quad.cull.cull_tiles`)."""
-    step = jnp.asarray(step_px, amplitudes.dtype)
-    index = quadrant_index(npix)
-    return parity_terms(plan, box_kernel, amplitudes, step, index, index, tiles=tiles)
+    """The far-field parity terms (px^2; see :func:`~.transform.quadrant_terms`)."""
+    return quadrant_terms(plan, box_kernel, amplitudes, step_px, npix, tiles=tiles)
 
 
 def far_field_from_terms(
@@ -72,6 +66,19 @@ def far_field_from_terms(
     same, opposite = far_field_quadrants(terms)
     scale = jnp.asarray(step_px, same.dtype) ** 2 / jnp.maximum(power, _TINY_POWER)
     return unfold(npix, same * scale, opposite * scale)
+
+
+def quad_psf(
+    plan: QuadPlan,
+    raster: Float[Array, "n n"],
+    power_px: Float[ArrayLike, ""] | None,
+    terms_of: Callable[[Array], tuple[Array, Array, Array, Array]],
+    psf_of: Callable[[tuple, Array], Float[Array, "npix npix"]],
+) -> Float[Array, "npix npix"]:
+    """What the far and near field share: the quads' amplitudes read from `raster`, the
+    power (`power_px`, or the represented transmission), then the terms and the PSF."""
+    amps, power = plan_amplitudes(plan, raster)
+    return psf_of(terms_of(amps), power if power_px is None else power_px)
 
 
 def quad_far_field(
@@ -96,7 +103,8 @@ def quad_far_field(
 
     **Returns:** the PSF (fraction of the power through the aperture per pixel).
     """
-    amps, power = plan_amplitudes(plan, raster)
-    power = power if power_px is None else power_px
-    terms = far_field_terms(plan, amps, step_px, npix, tiles)
-    return far_field_from_terms(terms, power, step_px, npix)
+    return quad_psf(
+        plan, raster, power_px,
+        lambda amps: far_field_terms(plan, amps, step_px, npix, tiles),
+        lambda terms, power: far_field_from_terms(terms, power, step_px, npix),
+    )  # fmt: skip

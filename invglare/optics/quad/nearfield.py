@@ -34,9 +34,9 @@ import numpy as np
 from jax.scipy.special import fresnel
 from jaxtyping import Array, ArrayLike, Complex, Float
 
-from invglare.optics.quad.farfield import _TINY_POWER, plan_amplitudes
+from invglare.optics.quad.farfield import _TINY_POWER, quad_psf
 from invglare.optics.quad.plan import QuadPlan
-from invglare.optics.quad.transform import FreqAxis, Tiles, parity_terms, quadrant_index, unfold
+from invglare.optics.quad.transform import FreqAxis, Tiles, quadrant_terms, unfold
 
 
 def fresnel_e(s: Float[Array, "*shape"]) -> Complex[Array, "*shape"]:
@@ -75,18 +75,10 @@ def fresnel_kernel(
 
 
 def near_field_terms(
-    plan: QuadPlan,
-    amplitudes: Float[Array, " k"],
-    step_px: Float[ArrayLike, ""],
-    alpha: Float[ArrayLike, ""],
-    npix: int,
-    tiles: Tiles | None = None,
+    plan: QuadPlan, amplitudes: Float[Array, " k"], step_px, alpha, npix: int, tiles=None
 ) -> tuple[Array, Array, Array, Array]:
-    """The parity terms (complex, px^2) on the quadrant of an `npix` output (on `tiles`)."""
-    step = jnp.asarray(step_px, amplitudes.dtype)
-    alpha = jnp.asarray(alpha, amplitudes.dtype)
-    index = quadrant_index(npix)
-    return parity_terms(plan, fresnel_kernel, amplitudes, step, index, index, alpha, tiles=tiles)
+    """The near-field parity terms (complex, px^2; see :func:`~.transform.quadrant_terms`)."""
+    return quadrant_terms(plan, fresnel_kernel, amplitudes, step_px, npix, alpha, tiles)
 
 
 def near_field_from_terms(
@@ -119,22 +111,15 @@ def quad_near_field(
 ) -> Float[Array, "npix npix"]:
     """Fresnel PSF of the raster's quads on an ``npix`` output grid, per unit power.
 
-    **Arguments:**
-
-    - `plan`: from :func:`~invglare.optics.quad.plan.make_plan`.
-    - `raster`: the transmission the quads read their intensities from (traced or not).
-    - `step_px`: output pixel in cycles per raster pixel, ``dtheta * pitch / lambda``.
-    - `alpha`: the chirp in raster pixels, ``pitch^2 / (lambda d)`` (``4 N_F / D_px^2``
-      for a Fresnel number ``N_F`` of an aperture ``D_px`` pixels across).
-    - `npix`: output size; pixel ``npix // 2`` is the axis.
-    - `tiles`: the output tiles culling keeps (None: all).
-    - `power_px`: the power through the aperture in aperture pixels (a closed-form area
-      over ``pitch^2``); None: the represented raster's transmission ``sum |t|``.
+    The arguments are those of :func:`~invglare.optics.quad.farfield.quad_far_field`, and
+    `alpha`, the chirp in raster pixels, ``pitch^2 / (lambda d)`` (``4 N_F / D_px^2`` for
+    a Fresnel number ``N_F`` of an aperture ``D_px`` pixels across).
 
     **Returns:** the PSF (fraction of the power through the aperture per pixel), indexed
     by the angle ``theta = x' / d`` of the observation point ``x'``.
     """
-    amps, power = plan_amplitudes(plan, raster)
-    power = power if power_px is None else power_px
-    terms = near_field_terms(plan, amps, step_px, alpha, npix, tiles)
-    return near_field_from_terms(terms, power, step_px, npix)
+    return quad_psf(
+        plan, raster, power_px,
+        lambda amps: near_field_terms(plan, amps, step_px, alpha, npix, tiles),
+        lambda terms, power: near_field_from_terms(terms, power, step_px, npix),
+    )  # fmt: skip

@@ -37,6 +37,18 @@ def _check_int(name: str, value, lo: int, hi: int | None = None) -> int:
     return int(value)
 
 
+def _from_table(cls, method: str, table: Mapping[str, Any] | None):
+    """A method's options from its config table, naming an unknown key and the valid ones."""
+    table = dict(table or {})
+    names = [f.name for f in dataclasses.fields(cls)]
+    unknown = [k for k in table if k not in names]
+    if unknown:
+        raise ConfigError(
+            f"{method} option {unknown[0]!r} is unknown; valid options: {', '.join(names)}"
+        )
+    return cls(**table)
+
+
 @dataclasses.dataclass(frozen=True)
 class QuadOptions:
     """How a raster becomes quads and how they are evaluated.
@@ -81,14 +93,7 @@ class QuadOptions:
 
     @classmethod
     def from_mapping(cls, table: Mapping[str, Any] | None) -> QuadOptions:
-        table = dict(table or {})
-        names = [f.name for f in dataclasses.fields(cls)]
-        unknown = [k for k in table if k not in names]
-        if unknown:
-            raise ConfigError(
-                f"quad option {unknown[0]!r} is unknown; valid options: {', '.join(names)}"
-            )
-        return cls(**table)
+        return _from_table(cls, "quad", table)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -108,14 +113,7 @@ class PolygonOptions:
 
     @classmethod
     def from_mapping(cls, table: Mapping[str, Any] | None) -> PolygonOptions:
-        table = dict(table or {})
-        names = [f.name for f in dataclasses.fields(cls)]
-        unknown = [k for k in table if k not in names]
-        if unknown:
-            raise ConfigError(
-                f"polygon option {unknown[0]!r} is unknown; valid options: {', '.join(names)}"
-            )
-        return cls(**table)
+        return _from_table(cls, "polygon", table)
 
 
 def step_px(grid: ApertureGrid, output: AngularGrid, wavelength_nm) -> Array:

@@ -18,7 +18,7 @@ from typing import NamedTuple
 import numpy as np
 from jaxtyping import Array
 
-from invglare.optics.quad.quadtree import QuadLayout
+from invglare.optics.quad.quadtree import DigestIdentity, QuadLayout
 
 #: Largest asymmetry (relative to the raster's largest value) still called a symmetry.
 MIRROR_TOLERANCE = 1e-4
@@ -52,7 +52,7 @@ def detect_mirrors(raster, tolerance: float = MIRROR_TOLERANCE) -> tuple[bool, b
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
-class QuadPlan:
+class QuadPlan(DigestIdentity):
     """The evaluation plan of a :class:`~invglare.optics.quad.quadtree.QuadLayout`.
 
     **Fields:** the `layout`; `mirror_x` / `mirror_y` (the aperture is even in x / in y:
@@ -82,12 +82,6 @@ class QuadPlan:
             h = hashlib.sha1(self.layout.digest.encode())
             h.update(repr((self.mirror_x, self.mirror_y)).encode())
             object.__setattr__(self, "digest", h.hexdigest())
-
-    def __hash__(self) -> int:
-        return hash(self.digest)
-
-    def __eq__(self, other) -> bool:
-        return isinstance(other, QuadPlan) and other.digest == self.digest
 
     @property
     def n_rows(self) -> int:

@@ -58,8 +58,31 @@ MAX_SIDE = 16384
 _DENSE_GROUPS = 8
 
 
+class DigestIdentity:
+    """Equal and hashed by `digest` (layouts and plans are static arguments of compiled
+    functions: their arrays would be compared element by element otherwise)."""
+
+    digest: str
+
+    def __hash__(self) -> int:
+        return hash(self.digest)
+
+    def __eq__(self, other) -> bool:
+        return type(other) is type(self) and other.digest == self.digest
+
+
+def grown_by_one(mask: np.ndarray) -> np.ndarray:
+    """`mask` with its four-neighbours set too."""
+    grown = mask.copy()
+    grown[1:] |= mask[:-1]
+    grown[:-1] |= mask[1:]
+    grown[:, 1:] |= mask[:, :-1]
+    grown[:, :-1] |= mask[:, 1:]
+    return grown
+
+
 @dataclasses.dataclass(frozen=True, eq=False)
-class QuadLayout:
+class QuadLayout(DigestIdentity):
     """The quads of one raster, and how their intensities are read from a raster.
 
     Quads are in the raster's pixel indices: quad ``k`` covers rows ``y0[k] .. y0[k] +
@@ -99,12 +122,6 @@ class QuadLayout:
             for a in (self.x0, self.y0, self.w, self.h, self.sign, self.group, self.cell_group):
                 h.update(np.ascontiguousarray(a).tobytes())
             object.__setattr__(self, "digest", h.hexdigest())
-
-    def __hash__(self) -> int:
-        return hash(self.digest)
-
-    def __eq__(self, other) -> bool:
-        return isinstance(other, QuadLayout) and other.digest == self.digest
 
     @property
     def n_quads(self) -> int:
@@ -249,12 +266,7 @@ def _unique_cells(values: np.ndarray, band: int | None) -> np.ndarray:
         return np.zeros(values.shape, bool)
     unique = (values > 0) & (values < 1)
     for _ in range(band):
-        grown = unique.copy()
-        grown[1:] |= unique[:-1]
-        grown[:-1] |= unique[1:]
-        grown[:, 1:] |= unique[:, :-1]
-        grown[:, :-1] |= unique[:, 1:]
-        unique = grown
+        unique = grown_by_one(unique)
     return unique
 
 

@@ -378,6 +378,24 @@ def parity_terms(
     )  # fmt: skip
 
 
+def quadrant_terms(
+    plan: QuadPlan,
+    kernel: Kernel,
+    amplitudes: Float[Array, " k"],
+    step_px: Float[ArrayLike, ""],
+    npix: int,
+    params=None,
+    tiles: Tiles | None = None,
+) -> tuple[Array, Array, Array, Array]:
+    """:func:`parity_terms` on the quadrant of an `npix` output of pixel `step_px` (only on
+    `tiles` when given): the far and the near field differ only in `kernel` and `params`."""
+    dtype = amplitudes.dtype
+    step = jnp.asarray(step_px, dtype)
+    params = None if params is None else jnp.asarray(params, dtype)
+    index = quadrant_index(npix)
+    return parity_terms(plan, kernel, amplitudes, step, index, index, params, tiles=tiles)
+
+
 def far_field_quadrants(
     terms: tuple[Array, Array, Array, Array],
 ) -> tuple[Array, Array]:
