@@ -58,10 +58,11 @@ from __future__ import annotations
 
 import collections
 import dataclasses
+import inspect
 import itertools
 import math
 import time
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Collection, Mapping, Sequence
 from typing import Any, NamedTuple
 
 import equinox as eqx
@@ -718,6 +719,8 @@ def fit_many(
             f"{len(spaces)}, {len(forward_templates)}, {k}, {len(starts)}, {len(truths)}, "
             f"{len(progress)}, {len(options)}"
         )
+    given = ("starts", "n_starts", "truth", "progress", "view_options", "batch")
+    settings = _fit_defaults(but=given) | settings
     runs = [
         _FitRun(sp, fw, tg, views, starts=st, n_starts=np.shape(st)[0], truth=tr, progress=pr,
                 view_options=vo, batch=batch, **settings)
@@ -735,9 +738,17 @@ def fit_many(
     return [run.result() for run in runs]
 
 
+def _fit_defaults(but: Collection[str]) -> dict[str, Any]:
+    """:func:`fit`'s keyword defaults less those named: fit_many's settings fall back to them,
+    so that they live in fit's signature alone."""
+    params = inspect.signature(fit).parameters.values()
+    return {p.name: p.default for p in params if p.kind is p.KEYWORD_ONLY and p.name not in but}
+
+
 class _FitRun:
     """One photo's fit, stage by stage (coarse to fine): :func:`fit` and :func:`fit_many`
-    run the solves, one photo at a time or several in one call, and this keeps the books."""
+    run the solves, one photo at a time or several in one call, and this keeps the books.
+    It takes every keyword argument of :func:`fit`, whose signature holds their defaults."""
 
     def __init__(
         self,
@@ -746,23 +757,23 @@ class _FitRun:
         target: Float[ArrayLike, "h w"],
         views: Mapping[str, float] | None,
         *,
-        solver: str = "lm",
-        n_starts: int = 3,
-        key: PRNGKeyArray | None = None,
-        starts: Any = None,
-        max_steps: int = 256,
-        rtol: float = 1e-6,
-        atol: float = 1e-8,
-        coarse_to_fine: Sequence[int] = (1,),
-        refine_top: int = 1,
-        view_options: Mapping[str, Mapping[str, Any]] | None = None,
-        covariance_scale: str | float = "auto",
-        truth: Mapping[str, float] | None = None,
-        batch: str = "vmap",
-        progress: Callable[[FitProgress], None] | None = None,
-        record_history: bool = True,
-        diagnostics: bool = True,
-        final_likelihood: bool = True,
+        solver: str,
+        n_starts: int,
+        key: PRNGKeyArray | None,
+        starts: Any,
+        max_steps: int,
+        rtol: float,
+        atol: float,
+        coarse_to_fine: Sequence[int],
+        refine_top: int,
+        view_options: Mapping[str, Mapping[str, Any]] | None,
+        covariance_scale: str | float,
+        truth: Mapping[str, float] | None,
+        batch: str,
+        progress: Callable[[FitProgress], None] | None,
+        record_history: bool,
+        diagnostics: bool,
+        final_likelihood: bool,
     ):
         if solver not in SOLVERS:
             raise ConfigError(f"solver {solver!r} is not one of {', '.join(SOLVERS)}")

@@ -465,7 +465,19 @@ def whitened(
     return r
 
 
-class RadialView(AbstractView):
+class _StatisticView(AbstractView):
+    """A statistics view: its :meth:`raw` residual, whitened by the scatter between eyes (the
+    :data:`SCATTER_FIELDS`, which each view declares after its own fields, in that order)."""
+
+    def __call__(self, ctx):
+        return whitened(self.raw(ctx), self.offset, self.whiten)
+
+    @abc.abstractmethod
+    def raw(self, ctx: ViewContext) -> Float[Array, " n"]:
+        """The residual before the scatter's whitening."""
+
+
+class RadialView(_StatisticView):
     """Log ratio of the target's and the model's radial profiles (clipped prediction).
 
     ``log(P_t + floor) - log(P_m + floor)`` per ring, `floor` in counts per pixel
@@ -482,11 +494,7 @@ class RadialView(AbstractView):
     offset: Float[Array, " n"] | None = eqx.field(converter=_optional_array, default=None)
     whiten: Float[Array, "n n"] | None = eqx.field(converter=_optional_array, default=None)
 
-    def __call__(self, ctx):
-        return whitened(self.raw(ctx), self.offset, self.whiten)
-
     def raw(self, ctx):
-        """The residual before the scatter's whitening."""
         pt = radial_profile(ctx.target, ctx.centre, self.n_bins, self.max_radius_px)
         pm = radial_profile(ctx.predicted, ctx.centre, self.n_bins, self.max_radius_px)
         return jnp.log(jnp.maximum(pt, 0.0) + self.floor) - jnp.log(
@@ -497,7 +505,7 @@ class RadialView(AbstractView):
         return self.n_bins
 
 
-class AngularView(AbstractView):
+class AngularView(_StatisticView):
     """Difference of the energy fractions per angular sector, times `n_bins` (so O(1)).
 
     Both images have the model's current background removed first; the
@@ -514,11 +522,7 @@ class AngularView(AbstractView):
     offset: Float[Array, " n"] | None = eqx.field(converter=_optional_array, default=None)
     whiten: Float[Array, "n n"] | None = eqx.field(converter=_optional_array, default=None)
 
-    def __call__(self, ctx):
-        return whitened(self.raw(ctx), self.offset, self.whiten)
-
     def raw(self, ctx):
-        """The residual before the scatter's whitening."""
         bg = ctx.obs.response * ctx.obs.background
         et = angular_energy(ctx.target - bg, ctx.centre, self.n_bins, self.r_min, self.r_max)
         em = angular_energy(ctx.predicted - bg, ctx.centre, self.n_bins, self.r_min, self.r_max)
@@ -530,7 +534,7 @@ class AngularView(AbstractView):
         return self.n_bins
 
 
-class HaloView(AbstractView):
+class HaloView(_StatisticView):
     """Target minus model halo ring radius (px), see :func:`halo_ring_radius`; whitened
     by the scatter between eyes where it is measured (:data:`SCATTER_FIELDS`)."""
 
@@ -542,11 +546,7 @@ class HaloView(AbstractView):
     offset: Float[Array, " n"] | None = eqx.field(converter=_optional_array, default=None)
     whiten: Float[Array, "n n"] | None = eqx.field(converter=_optional_array, default=None)
 
-    def __call__(self, ctx):
-        return whitened(self.raw(ctx), self.offset, self.whiten)
-
     def raw(self, ctx):
-        """The residual before the scatter's whitening."""
         bg = ctx.obs.response * ctx.obs.background
         kw = dict(background=bg, power=self.power)
         rt = halo_ring_radius(ctx.target, ctx.centre, self.r_core, self.r_max, **kw)
