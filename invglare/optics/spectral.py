@@ -537,7 +537,7 @@ def near_field_heuristic_factors(
     against a 529 nm reference: magnification 1.017, the far field's 0.756). Of the
     readings we tried (``p = rho``, ``p = 1 / rho``, ``p`` the position in the sampled
     range, no scaling), this one came nearest the exact per-wavelength sum for a heptagon
-    at Fresnel numbers 3 to 20 (L1 error 9-14 % of the image; no scaling 10-14 %, the
+    at Fresnel numbers 4 to 20 (L1 error 9-14 % of the image; no scaling 10-14 %, the
     far-field scaling 35-46 %). Returns the magnifications ``1 / (1 + strength (1 - rho))``
     for :func:`scaled_copies`.
     """
