@@ -50,7 +50,11 @@ def plan_amplitudes(
 
 
 def far_field_terms(
-    plan: QuadPlan, amplitudes: Float[Array, " k"], step_px, npix: int, tiles=None
+    plan: QuadPlan,
+    amplitudes: Float[Array, " k"],
+    step_px: Float[ArrayLike, ""],
+    npix: int,
+    tiles: Tiles | None = None,
 ) -> tuple[Array, Array, Array, Array]:
     """The far-field parity terms (px^2; see :func:`~.transform.quadrant_terms`)."""
     return quadrant_terms(plan, box_kernel, amplitudes, step_px, npix, tiles=tiles)

@@ -75,7 +75,12 @@ def fresnel_kernel(
 
 
 def near_field_terms(
-    plan: QuadPlan, amplitudes: Float[Array, " k"], step_px, alpha, npix: int, tiles=None
+    plan: QuadPlan,
+    amplitudes: Float[Array, " k"],
+    step_px: Float[ArrayLike, ""],
+    alpha: Float[ArrayLike, ""],
+    npix: int,
+    tiles: Tiles | None = None,
 ) -> tuple[Array, Array, Array, Array]:
     """The near-field parity terms (complex, px^2; see :func:`~.transform.quadrant_terms`)."""
     return quadrant_terms(plan, fresnel_kernel, amplitudes, step_px, npix, alpha, tiles)
