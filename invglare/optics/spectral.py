@@ -436,6 +436,8 @@ def scaled_copies_xyz(
     wavelengths_nm: Float[ArrayLike, " nwl"],
     weights: Float[ArrayLike, "nwl 3"],
     weighting: str = "energy",
+    *,
+    method: str = "scaled",
 ) -> Float[Array, "*batch h w 3"]:
     """XYZ PSF as a weighted sum of magnified copies of one monochromatic PSF.
 
@@ -457,6 +459,9 @@ def scaled_copies_xyz(
     - `ref_wavelength_nm`: its wavelength (nm), e.g. 575.
     - `wavelengths_nm`: the samples (nm), e.g. ``parse_wavelengths("380:770:32")``.
     - `weights`: their XYZ weights, from :func:`spectral_weights`.
+    - `method`: one of :data:`COPY_METHODS`: ``"scaled"`` magnifies by
+      ``lambda / lambda_ref``, ``"near_field_heuristic"`` by
+      :func:`near_field_heuristic_factors`.
 
     **Returns:** the XYZ PSF, channels on the last axis.
 
@@ -480,7 +485,12 @@ def scaled_copies_xyz(
             f"weights must have shape ({wavelengths.shape[0]}, 3) for wavelengths of shape "
             f"{wavelengths.shape}, got {weights.shape}"
         )
-    factors = wavelengths / jnp.asarray(ref_wavelength_nm, dtype=dtype)
+    if method not in COPY_METHODS:
+        raise ConfigError(f"method = {method!r} is not one of {', '.join(COPY_METHODS)}")
+    if method == "near_field_heuristic":
+        factors = near_field_heuristic_factors(wavelengths, ref_wavelength_nm)
+    else:
+        factors = wavelengths / jnp.asarray(ref_wavelength_nm, dtype=dtype)
     weights = copy_weights(weights, factors, weighting)
     return jnp.moveaxis(scaled_copies(psf_ref, factors, weights), 0, -1)
 
@@ -620,7 +630,7 @@ class Spectrum(eqx.Module):
         """Mono PSF, or linear RGB integrated over the spectrum (Y has unit energy)."""
         if not self.is_spectral:
             return monochrome(self.wavelengths_nm[0])
-        if self.spectral == "scaled":
+        if self.spectral in COPY_METHODS:
             reference = monochrome(jnp.asarray(self.reference_wavelength_nm))
             xyz = scaled_copies_xyz(
                 reference,
@@ -628,17 +638,8 @@ class Spectrum(eqx.Module):
                 self.wavelengths_nm,
                 self.weights_xyz,
                 self.copy_weighting,
+                method=self.spectral,
             )
-        elif self.spectral == "near_field_heuristic":
-            reference = monochrome(jnp.asarray(self.reference_wavelength_nm))
-            dtype = reference.dtype
-            factors = near_field_heuristic_factors(
-                jnp.asarray(self.wavelengths_nm, dtype), self.reference_wavelength_nm
-            )
-            weights = copy_weights(
-                jnp.asarray(self.weights_xyz, dtype), factors, self.copy_weighting
-            )
-            xyz = jnp.moveaxis(scaled_copies(reference, factors, weights), 0, -1)
         else:
             xyz = psf_to_xyz(jax.vmap(monochrome)(self.wavelengths_nm), self.weights_xyz)
         return xyz_to_rgb(xyz, self.colourspace)

@@ -21,8 +21,6 @@ sharp-edged aperture then sums to a little under 1 over the whole plane (the ras
 
 from __future__ import annotations
 
-from collections.abc import Callable
-
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float
 
@@ -72,19 +70,6 @@ def far_field_from_terms(
     return unfold(npix, same * scale, opposite * scale)
 
 
-def quad_psf(
-    plan: QuadPlan,
-    raster: Float[Array, "n n"],
-    power_px: Float[ArrayLike, ""] | None,
-    terms_of: Callable[[Array], tuple[Array, Array, Array, Array]],
-    psf_of: Callable[[tuple, Array], Float[Array, "npix npix"]],
-) -> Float[Array, "npix npix"]:
-    """What the far and near field share: the quads' amplitudes read from `raster`, the
-    power (`power_px`, or the represented transmission), then the terms and the PSF."""
-    amps, power = plan_amplitudes(plan, raster)
-    return psf_of(terms_of(amps), power if power_px is None else power_px)
-
-
 def quad_far_field(
     plan: QuadPlan,
     raster: Float[Array, "n n"],
@@ -107,8 +92,6 @@ def quad_far_field(
 
     **Returns:** the PSF (fraction of the power through the aperture per pixel).
     """
-    return quad_psf(
-        plan, raster, power_px,
-        lambda amps: far_field_terms(plan, amps, step_px, npix, tiles),
-        lambda terms, power: far_field_from_terms(terms, power, step_px, npix),
-    )  # fmt: skip
+    amps, power = plan_amplitudes(plan, raster)
+    terms = far_field_terms(plan, amps, step_px, npix, tiles)
+    return far_field_from_terms(terms, power if power_px is None else power_px, step_px, npix)

@@ -34,7 +34,7 @@ import numpy as np
 from jax.scipy.special import fresnel
 from jaxtyping import Array, ArrayLike, Complex, Float
 
-from invglare.optics.quad.farfield import _TINY_POWER, quad_psf
+from invglare.optics.quad.farfield import _TINY_POWER, plan_amplitudes
 from invglare.optics.quad.plan import QuadPlan
 from invglare.optics.quad.transform import FreqAxis, Tiles, quadrant_terms, unfold
 
@@ -123,8 +123,6 @@ def quad_near_field(
     **Returns:** the PSF (fraction of the power through the aperture per pixel), indexed
     by the angle ``theta = x' / d`` of the observation point ``x'``.
     """
-    return quad_psf(
-        plan, raster, power_px,
-        lambda amps: near_field_terms(plan, amps, step_px, alpha, npix, tiles),
-        lambda terms, power: near_field_from_terms(terms, power, step_px, npix),
-    )  # fmt: skip
+    amps, power = plan_amplitudes(plan, raster)
+    terms = near_field_terms(plan, amps, step_px, alpha, npix, tiles)
+    return near_field_from_terms(terms, power if power_px is None else power_px, step_px, npix)
