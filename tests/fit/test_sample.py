@@ -240,6 +240,29 @@ def test_interrupted_run_resumes_to_the_requested_length_keeping_stored_steps(to
     assert [r["start_step"] for r in after.runs] == [0, 120]
 
 
+def test_an_interrupt_inside_hdf5_is_still_recorded_as_interrupted(toy, tmp_path):
+    """A signal that lands while h5py holds the chain open (in emcee's write, or a read)
+    leaves that file id alive in the interrupted frame. The run must still record itself
+    "interrupted" with its committed steps, not fail re-opening the file with other flags."""
+    import h5py
+
+    space, fwd, target, _mean, _cov, res = toy
+    path = tmp_path / "chain.h5"
+
+    def stop(p: SampleProgress):
+        if p.iteration == 30:
+            held = h5py.h5f.open(str(path).encode(), h5py.h5f.ACC_RDONLY)  # noqa: F841
+            raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        sample(space, fwd, target, res, path, progress=stop, n_walkers=8, max_steps=100,
+               until_converged=False, batch_size=8, seed=5)  # fmt: skip
+    stored = _stored(path)
+    assert stored.n_steps == 30
+    assert stored.runs[-1]["stopped"] == "interrupted"
+    assert stored.runs[-1]["end_step"] == 30
+
+
 def test_resume_refuses_missing_chain_other_parameters_and_walker_change(toy, tmp_path):
     space, fwd, target, _mean, _cov, res = toy
     path = tmp_path / "chain.h5"

@@ -299,6 +299,34 @@ def sample(
     last_tau: np.ndarray | None = None
     tau_max = math.nan
     reason = "interrupted"
+
+    def record_run() -> None:
+        if bar is not None:
+            bar.close()
+        elapsed = time.perf_counter() - t_start
+        # From the counter: the steps this run committed, whatever interrupted it.
+        end_step = stored_iteration(path)
+        run_info["end_step"] = int(end_step)
+        run_info["n_steps"] = int(end_step - run_info["start_step"])
+        run_info["stopped"] = reason
+        run_info["n_nan"] = int(f.n_nan)
+        run_info["timing"] = {
+            "total_s": elapsed,
+            "s_per_step": elapsed / done_steps if done_steps else math.nan,
+            "s_per_walker_eval": f.seconds_per_walker,
+            "setup_s": setup_s,
+            "batch_size": int(batch_size),
+        }
+        # The run record is completed even on an interrupt, so the file says what happened.
+        current = read_meta(path) or meta
+        runs = current.setdefault("runs", [])
+        if runs and runs[-1].get("pid") == run_info["pid"] and runs[-1]["stopped"] == RUNNING:
+            runs[-1] = run_info
+        else:
+            runs.append(run_info)
+        with deferred_signals():
+            write_meta(path, current)
+
     try:
         with StopRequests() as stop:
             state = initial
@@ -331,32 +359,19 @@ def sample(
                     break
             else:
                 reason = "step limit"
-    finally:
-        if bar is not None:
-            bar.close()
-        elapsed = time.perf_counter() - t_start
-        # From the counter: the steps this run committed, whatever interrupted it.
-        end_step = stored_iteration(path)
-        run_info["end_step"] = int(end_step)
-        run_info["n_steps"] = int(end_step - run_info["start_step"])
-        run_info["stopped"] = reason
-        run_info["n_nan"] = int(f.n_nan)
-        run_info["timing"] = {
-            "total_s": elapsed,
-            "s_per_step": elapsed / done_steps if done_steps else math.nan,
-            "s_per_walker_eval": f.seconds_per_walker,
-            "setup_s": setup_s,
-            "batch_size": int(batch_size),
-        }
-        # The run record is completed even on an interrupt, so the file says what happened.
-        meta = read_meta(path) or meta
-        runs = meta.setdefault("runs", [])
-        if runs and runs[-1].get("pid") == run_info["pid"] and runs[-1]["stopped"] == RUNNING:
-            runs[-1] = run_info
-        else:
-            runs.append(run_info)
-        with deferred_signals():
-            write_meta(path, meta)
+    except KeyboardInterrupt:
+        # Recorded once this handler is left: a signal landing inside h5py leaves a file
+        # id open in the interrupted frames, and HDF5 refuses to reopen that file with
+        # other flags while the traceback keeps those frames alive.
+        interrupted = True
+    except BaseException:
+        record_run()
+        raise
+    else:
+        interrupted = False
+    record_run()
+    if interrupted:
+        raise KeyboardInterrupt
     result = load_chain(path, space, tau_factor=tau_factor)
     result.timing = dict(run_info["timing"])
     return result
