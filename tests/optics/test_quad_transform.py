@@ -27,7 +27,13 @@ from invglare.optics.quad import (
     sinc,
 )
 from invglare.optics.quad.apertures import PAPER_APERTURES, paper_grid, paper_raster
-from invglare.optics.quad.cull import cull_tiles, culling_error
+from invglare.optics.quad.cull import (
+    MAX_EVALUATED,
+    cull_tiles,
+    culling_error,
+    evaluated_fraction,
+    kept_fraction,
+)
 from invglare.optics.quad.farfield import plan_amplitudes
 from invglare.optics.quad.outline import Piece
 from invglare.optics.quad.polygon import polygon_transform, series_points
@@ -204,17 +210,42 @@ def test_square_near_field_matches_fresnel_integrals_to_1e4_of_peak(fresnel_numb
 # ------------------------------------------------------------------------------ culling
 
 
+def test_culling_is_skipped_where_its_runs_would_cover_most_of_the_quadrant():
+    """The culled evaluation computes the kept tiles' runs (gaps bridged), not the tiles:
+    a heptagon whose 63 % kept tiles span 93 % of the quadrant and a box whose 27 % span
+    56 % are evaluated dense; a box whose 15 % span 31 % is culled, with the forced tiles."""
+    cases = [("heptagon", 256, 2 / 256, False), ("box", 256, 2 / 256, False),
+             ("box", 512, 1 / 512, True)]  # fmt: skip
+    for name, npix, step, culled in cases:
+        raster = jnp.asarray(paper_raster(name, 128), jnp.float32)
+        plan = _plan(raster)
+        amps = np.asarray(plan_amplitudes(plan, raster)[0])
+        args = (plan, box_kernel, amps, (step,), npix, 1e-5)
+        forced = cull_tiles(*args, far=True, max_evaluated=1.0)
+        tiles = cull_tiles(*args, far=True)
+        share, kept = evaluated_fraction(forced, npix), kept_fraction(forced, npix)
+        assert (share <= MAX_EVALUATED) == culled and kept < share, (name, npix, kept, share)
+        if culled:
+            np.testing.assert_array_equal(tiles.rows, forced.rows)
+            np.testing.assert_array_equal(tiles.cols, forced.cols)
+        else:
+            assert tiles is None, (name, npix, kept, share)
+
+
 @pytest.mark.slow
 def test_culling_loses_no_more_than_its_threshold_and_keeps_gradients_exact():
     """Heptagon, 128 px raster to a 256 px output reaching its Nyquist angle, culled at
-    1e-5 of the peak: 63 % of the tiles kept, the culled pixels hold less than that
+    1e-5 of the peak: 63 % of the tiles kept (forced: their runs span 93 % of the quadrant,
+    where the dense evaluation is faster), the culled pixels hold less than that
     (measured 7e-7), and the gradient of a weighted loss with respect to the raster is the
     unculled one (the culled value's derivative is exact)."""
     n, npix, step = 128, 256, 2 / 256
     raster = jnp.asarray(paper_raster("heptagon", n), jnp.float32)
     plan = _plan(raster)
     amps, _ = plan_amplitudes(plan, raster)
-    tiles = cull_tiles(plan, box_kernel, np.asarray(amps), (step,), npix, 1e-5, far=True)
+    tiles = cull_tiles(
+        plan, box_kernel, np.asarray(amps), (step,), npix, 1e-5, far=True, max_evaluated=1.0
+    )
     assert tiles is not None and tiles.rows.size < 0.7 * (npix // 2 // 8 + 1) ** 2
     full = quad_far_field(plan, raster, step, npix)
     culled = quad_far_field(plan, raster, step, npix, tiles)

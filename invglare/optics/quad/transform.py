@@ -286,8 +286,12 @@ def _terms(
     a = amplitudes[:, None]
     sx = jnp.asarray(plan.sign_x, dtype)[:, None]
     sy = jnp.asarray(plan.sign_y, dtype)[:, None]
-    ex_q = ex[col]
-    ox_q = None if skip_x else ox[col]
+    # Each quad's kernel row, gathered on its own: fused into the kernel's arithmetic or
+    # into the amplitudes' product, XLA's CPU gather ran per element (the heptagon's far
+    # field at 1024 px: 8.8 ms, now 7.4).
+    ex, ox = materialise(ex), materialise(ox)
+    ex_q = materialise(ex[col])
+    ox_q = None if skip_x else materialise(ox[col])
     shape = (index_y.size, index_x.size)
 
     def products(kernel_y, inners):
