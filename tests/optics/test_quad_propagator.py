@@ -269,3 +269,24 @@ def test_mft_refuses_what_quad_computes_at_the_same_raster():
     t, pitch = np.asarray(narrow.transmission()), float(narrow.propagator.grid.pitch_mm)
     whole = (t * t).sum() * pitch**2 / float(HEPTAGON.open_area_mm2())
     assert 0.98 * whole < band < wide <= whole
+
+
+def test_a_culled_propagator_holds_its_tiles_as_plain_integers():
+    """Culling kept tiles (a box, 128 px to 512): they sit in a static field, as Python
+    ints: numpy or JAX scalars there are arrays to equinox, which warned on every build."""
+    import warnings
+
+    from invglare.optics.quad.apertures import paper_grid, paper_raster
+
+    grid = paper_grid(128)
+    prop = make_propagator(
+        window_mm=float(grid.width_mm), focal_length_mm=17.0, fft_wavelength_nm=550.0,
+        shortest_wavelength_nm=550.0, npix=512, aperture_npix=128, method="quad",
+        method_options={"cull_below": 1e-5},
+    )  # fmt: skip
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        prepared = prop.prepared(jnp.asarray(paper_raster("box", 128)))
+    size, rows, cols = prepared.tiles
+    assert 0 < len(rows) == len(cols) < (512 // 2 // size + 1) ** 2
+    assert all(type(i) is int for i in (size, *rows, *cols))

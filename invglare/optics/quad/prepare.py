@@ -72,7 +72,10 @@ def quad_tiles(
         plan, kernel, np.asarray(amps), steps, npix, options.cull_below,
         far=far, params=params, tile=options.tile,
     )  # fmt: skip
-    return None if tiles is None else (tiles.size, tuple(tiles.rows), tuple(tiles.cols))
+    if tiles is None:
+        return None
+    # Python ints: numpy (and JAX) scalars in a static field are arrays to equinox, which warns.
+    return (tiles.size, tuple(map(int, tiles.rows)), tuple(map(int, tiles.cols)))
 
 
 def as_tiles(tiles: tuple | None) -> Tiles | None:
