@@ -155,7 +155,8 @@ def evaluated_fraction(tiles: Tiles | None, npix: int) -> float:
 
 
 def kept_fraction(tiles: Tiles | None, npix: int) -> float:
-    """Share of the output's pixels evaluated (1 without culling)."""
+    """Share of the quadrant's tiles culling keeps (1 without culling); what the culled
+    evaluation computes is their runs, :func:`evaluated_fraction`."""
     if tiles is None:
         return 1.0
     side = npix // 2 + 1
