@@ -4,6 +4,7 @@ the configs; and every bad input they refuse."""
 from __future__ import annotations
 
 import math
+import warnings
 
 import equinox as eqx
 import jax
@@ -23,6 +24,7 @@ from invglare.optics.propagator import (
     QuadFresnel,
     make_propagator,
 )
+from invglare.optics.quad.apertures import paper_grid, paper_raster
 from invglare.optics.quad.options import QuadOptions
 from invglare.optics.spectral import near_field_heuristic_factors, scaled_copies, xyz_to_rgb
 
@@ -274,10 +276,6 @@ def test_mft_refuses_what_quad_computes_at_the_same_raster():
 def test_a_culled_propagator_holds_its_tiles_as_plain_integers():
     """Culling kept tiles (a box, 128 px to 512): they sit in a static field, as Python
     ints: numpy or JAX scalars there are arrays to equinox, which warned on every build."""
-    import warnings
-
-    from invglare.optics.quad.apertures import paper_grid, paper_raster
-
     grid = paper_grid(128)
     prop = make_propagator(
         window_mm=float(grid.width_mm), focal_length_mm=17.0, fft_wavelength_nm=550.0,
