@@ -83,14 +83,19 @@ def _psf(n: int):
     return run
 
 
-def _psf_jax(n: int):
-    if _torch() is None:
-        return None
+def _psf_jax_inputs(n: int):
+    """The PSF layer's bridge, its constant leaves and its latent as a JAX array."""
     from invglare.torch import to_jax
 
     layer = _psf_layer(n)
-    bridge, latent = layer._psf, to_jax(layer.latent)
-    leaves = bridge.consts_for(False)
+    bridge = layer._psf
+    return bridge, bridge.consts_for(False), to_jax(layer.latent)
+
+
+def _psf_jax(n: int):
+    if _torch() is None:
+        return None
+    bridge, leaves, latent = _psf_jax_inputs(n)
     return lambda: bridge.jax_forward(leaves, latent)
 
 
@@ -114,11 +119,7 @@ def _psf_grad_jax(n: int):
         return None
     import jax.numpy as jnp
 
-    from invglare.torch import to_jax
-
-    layer = _psf_layer(n)
-    bridge, latent = layer._psf, to_jax(layer.latent)
-    leaves = bridge.consts_for(False)
+    bridge, leaves, latent = _psf_jax_inputs(n)
     w = jnp.asarray(_weights((1, n, n), 1))
 
     def run():

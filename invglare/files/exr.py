@@ -137,14 +137,15 @@ def _short_float(value: float) -> float:
     return float(value)
 
 
-def _first_index(mask: np.ndarray) -> tuple[int, ...]:
-    return tuple(int(i) for i in np.unravel_index(int(np.argmax(mask)), mask.shape))
-
-
-def _location(index: tuple[int, ...], channels: Sequence[str]) -> str:
-    text = f"row {index[0]}, column {index[1]}"
+def first_flagged(mask: np.ndarray, channels: Sequence[str] = ()) -> str:
+    """Where the first flagged pixel of an ``(H, W)`` or ``(H, W, C)`` mask lies, for an
+    error message: ``row r, column c``, and on three axes ``channel 'name'`` (the
+    channel's index where `channels` does not name it)."""
+    index = np.unravel_index(int(np.argmax(mask)), mask.shape)
+    text = f"row {int(index[0])}, column {int(index[1])}"
     if len(index) == 3:
-        text += f", channel {channels[index[2]]!r}"
+        c = int(index[2])
+        text += f", channel {channels[c]!r}" if c < len(channels) else f", channel {c}"
     return text
 
 
@@ -165,7 +166,7 @@ def validate_pixels(
             raise InputDataError(
                 f"{path}: channel {name!r} has {int(bad.sum())} non-finite pixel(s) "
                 f"({n_nan} NaN, {int(bad.sum()) - n_nan} Inf), first at "
-                f"{_location(_first_index(bad), [])}; expected finite values"
+                f"{first_flagged(bad)}; expected finite values"
             )
     if allow_negative:
         return
@@ -175,7 +176,7 @@ def validate_pixels(
         if neg.any():
             raise InputDataError(
                 f"{path}: channel {name!r} has {int(neg.sum())} negative pixel(s) "
-                f"(minimum {float(plane.min()):g}), first at {_location(_first_index(neg), [])}; "
+                f"(minimum {float(plane.min()):g}), first at {first_flagged(neg)}; "
                 "expected values >= 0 (pass allow_negative=True for signed data)"
             )
 
@@ -236,7 +237,7 @@ def _check_write_values(path: Path, planes: np.ndarray, names: Sequence[str], ha
     if bad.any():
         raise InputDataError(
             f"cannot write {path}: the image has {int(bad.sum())} non-finite pixel value(s) "
-            f"(NaN or Inf), first at {_location(_first_index(bad), names)}"
+            f"(NaN or Inf), first at {first_flagged(bad, names)}"
         )
     limit, kind = (_HALF_MAX, "half") if half else (_FLOAT32_MAX, "float32")
     over = np.abs(planes) > limit
@@ -244,7 +245,7 @@ def _check_write_values(path: Path, planes: np.ndarray, names: Sequence[str], ha
         raise InputDataError(
             f"cannot write {path}: {int(over.sum())} pixel value(s) exceed the largest {kind} "
             f"value {limit:g} (largest magnitude {float(np.abs(planes).max()):g}), first at "
-            f"{_location(_first_index(over), names)}" + ("; write with half=False" if half else "")
+            f"{first_flagged(over, names)}" + ("; write with half=False" if half else "")
         )
 
 

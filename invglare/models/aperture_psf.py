@@ -17,16 +17,17 @@ area of a lone disk, ellipse, polygon or capsule in closed form
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
-from typing import Any, ClassVar
+from collections.abc import Sequence
+from typing import Any, ClassVar, Unpack
 
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
 from invglare.aperture import Aperture, shape_to_config
-from invglare.models.base import broadcast_image, check_no_state, light_angle, light_angles
+from invglare.models.base import AbstractShiftInvariantModel, check_no_state, light_angle
 from invglare.models.raster import (
     AbstractRasterModel,
+    RasterSampling,
     build_propagator,
     prepared_for,
     raster_header,
@@ -35,7 +36,7 @@ from invglare.optics.propagator import AbstractPropagator
 from invglare.optics.spectral import Spectrum
 
 
-class AperturePSF(AbstractRasterModel):
+class AperturePSF(AbstractRasterModel, AbstractShiftInvariantModel):
     """PSF of an aperture for a spectrum, on the propagator's angular output grid.
 
     Build one with :meth:`build`, which picks the sampling and the method. The PSF does
@@ -56,17 +57,12 @@ class AperturePSF(AbstractRasterModel):
         *,
         focal_length_mm: float,
         wavelengths_nm: Sequence[float] | float | str = 550.0,
-        npix: int = 512,
-        pixel_scale_deg: float | None = None,
-        aperture_npix: int = 256,
-        window_mm: float | None = None,
-        propagation: str = "fraunhofer",
         method: str = "auto",
-        method_options: Mapping[str, Any] | None = None,
         spectral: str = "exact",
         reference_wavelength_nm: float = 575.0,
         illuminant: str = "E",
         colourspace: str = "sRGB",
+        **raster: Unpack[RasterSampling],
     ) -> AperturePSF:
         """Choose sampling and method for an aperture, validating every value.
 
@@ -75,10 +71,12 @@ class AperturePSF(AbstractRasterModel):
         - `focal_length_mm`: pupil-to-retina (or lens-to-sensor) distance; it sets
           the Fresnel term and the retina pixel size, not the angular PSF.
         - `wavelengths_nm`: one wavelength (monochrome PSF) or several (RGB PSF).
-        - `npix`, `pixel_scale_deg`: the output grid. Without a pixel scale the FFT's
-          native scale ``lambda / (fft_npix * pitch)`` is used (the fast path).
-        - `aperture_npix`, `window_mm`: the aperture raster; the window defaults to
-          the aperture's extent plus two pixels on each side.
+        - `npix`, `pixel_scale_deg`: the output grid (default 512 pixels). Without a pixel
+          scale the FFT's native scale ``lambda / (fft_npix * pitch)`` is used (the fast path).
+        - `aperture_npix`, `window_mm`: the aperture raster (default 256 pixels); the window
+          defaults to the aperture's extent plus two pixels on each side.
+        - `propagation`: ``"fraunhofer"`` (default) or ``"fresnel"`` (the Fresnel term of the
+          temporal-glare paper's eq. 3).
         - `method`: ``"fft"``, ``"mft"`` or ``"auto"`` (FFT when the requested pixel
           scale is one the FFT produces, else the exact matrix Fourier transform);
           ``"quad"`` (the raster's quads in closed form: any sampling, no aliasing, the
@@ -108,16 +106,7 @@ class AperturePSF(AbstractRasterModel):
             colourspace=colourspace,
         )
         propagator = build_propagator(
-            aperture.extent_mm(),
-            spectrum,
-            focal_length_mm=focal_length_mm,
-            npix=npix,
-            pixel_scale_deg=pixel_scale_deg,
-            aperture_npix=aperture_npix,
-            window_mm=window_mm,
-            propagation=propagation,
-            method=method,
-            method_options=method_options,
+            aperture.extent_mm(), spectrum, focal_length_mm=focal_length_mm, method=method, **raster
         )
         propagator = prepared_for(propagator, aperture, aperture.transmission(propagator.grid))
         return cls(aperture, propagator, spectrum)
@@ -142,14 +131,6 @@ class AperturePSF(AbstractRasterModel):
         light_angle(light_angle_deg)
         check_no_state(self, state)
         return self.psf()
-
-    def batch(self, light_angles_deg, batch_size=None):
-        """The PSF once per light, ``(K, npix, npix[, 3])`` (computed once)."""
-        return broadcast_image(self.psf(), light_angles(light_angles_deg).shape[0])
-
-    @property
-    def shift_invariant(self) -> bool:
-        return True
 
     def spot_raster(self) -> Float[Array, "n n"]:
         return self.transmission()

@@ -118,6 +118,25 @@ class AbstractGlareModel(eqx.Module):
         """The config (``{"model": ..., ...}``) that rebuilds this model."""
 
 
+class AbstractShiftInvariantModel(AbstractGlareModel):
+    """A model whose image is the same for every light direction: its :meth:`psf`, made
+    once for a whole batch."""
+
+    @abc.abstractmethod
+    def psf(self) -> Image:
+        """The image of every light (an animated model's at rest)."""
+
+    def batch(
+        self, light_angles_deg: Float[ArrayLike, "K 2"], batch_size: int | None = None
+    ) -> Images:
+        """The image once per light, ``(K, ...)`` (computed once)."""
+        return broadcast_image(self.psf(), light_angles(light_angles_deg).shape[0])
+
+    @property
+    def shift_invariant(self) -> bool:
+        return True
+
+
 def check_light_angle(light_angle_deg: Array, batched: bool = False) -> None:
     """Shape ``(2,)`` (or ``(K, 2)``); concrete values finite and within ±90 deg."""
     expected = "(K, 2)" if batched else "(2,)"

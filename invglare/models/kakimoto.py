@@ -76,8 +76,8 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from collections.abc import Mapping, Sequence
-from typing import Any, ClassVar, Protocol, runtime_checkable
+from collections.abc import Sequence
+from typing import Any, ClassVar, Protocol, Unpack, runtime_checkable
 
 import equinox as eqx
 import jax
@@ -92,10 +92,17 @@ from invglare.aperture.camera import CameraAperture, camera_to_config
 from invglare.aperture.eye import EyeAperture, eye_to_config
 from invglare.errors import ConfigError, PhysicsRangeError
 from invglare.models.aperture_psf import output_and_spectrum_tables, propagator_table
-from invglare.models.base import check_no_state, light_angle, light_angles, map_lights
+from invglare.models.base import (
+    broadcast_image,
+    check_no_state,
+    light_angle,
+    light_angles,
+    map_lights,
+)
 from invglare.models.raster import (
     AIRY_FIRST_ZERO,
     AbstractRasterModel,
+    RasterSampling,
     build_propagator,
     raster_header,
 )
@@ -210,22 +217,17 @@ class KakimotoGlare(AbstractRasterModel):
         *,
         focal_length_mm: float,
         obstacle_distance_mm: float,
-        npix: int = 512,
-        pixel_scale_deg: float | None = None,
-        aperture_npix: int = 256,
-        window_mm: float | None = None,
         colour: str = "paper_rgb",
         masking: str = "fixed",
         wavelengths_nm: Any = None,
         max_light_angle_deg: float = 0.0,
-        propagation: str = "fraunhofer",
         method: str = "auto",
-        method_options: Mapping[str, Any] | None = None,
         spectral: str = "exact",
         reference_wavelength_nm: float = 575.0,
         illuminant: str = "E",
         colourspace: str = "sRGB",
         wide_angle: str = "ensemble",
+        **raster: Unpack[RasterSampling],
     ) -> KakimotoGlare:
         """Choose the sampling for an aperture and validate every choice.
 
@@ -235,10 +237,10 @@ class KakimotoGlare(AbstractRasterModel):
         - `focal_length_mm`: pupil-to-retina / lens-to-sensor distance ``f`` (mm).
         - `obstacle_distance_mm`: ``d_o`` (mm, >= 0), e.g. ~8 mm from lashes to the
           pupil of an eye, or the distance of a filter in front of a camera's stop.
-        - `npix`, `pixel_scale_deg`: the output grid; without a pixel scale the FFT's
-          native scale at the shortest computed wavelength is used.
-        - `aperture_npix`, `window_mm`: the aperture raster; the window defaults to
-          the pupil's extent plus two pixels on each side.
+        - `npix`, `pixel_scale_deg`: the output grid (default 512 pixels); without a pixel
+          scale the FFT's native scale at the shortest computed wavelength is used.
+        - `aperture_npix`, `window_mm`: the aperture raster (default 256 pixels); the window
+          defaults to the pupil's extent plus two pixels on each side.
         - `colour`: ``"paper_rgb"`` (R, G, B = monochromatic PSFs at `wavelengths_nm`,
           default 680 / 530 / 460 nm, in that order) or ``"spectral"`` (`wavelengths_nm`
           integrated to linear RGB by `Spectrum`, default ``"380:770:32"``; a single
@@ -335,14 +337,9 @@ class KakimotoGlare(AbstractRasterModel):
             float(aperture.extent_mm()),
             sampling,
             focal_length_mm=focal_length_mm,
-            npix=npix,
-            pixel_scale_deg=pixel_scale_deg,
-            aperture_npix=aperture_npix,
-            window_mm=window_mm,
-            propagation=propagation,
             method=method,
-            method_options=method_options,
             beyond_band=wide_angle != "none" and bool(getattr(aperture, "particles", ())),
+            **raster,
         )
         # Structures finer than the raster: gratings it aliases are refused, the rest warned.
         check_structures(
@@ -494,8 +491,7 @@ class KakimotoGlare(AbstractRasterModel):
         """
         angles = light_angles(light_angles_deg)
         if self.masking == "fixed":
-            psf = self._psf(self.field())
-            return jnp.broadcast_to(psf, (angles.shape[0], *psf.shape))
+            return broadcast_image(self._psf(self.field()), angles.shape[0])
         return map_lights(lambda angle: self._psf(self.field(angle), angle), angles, batch_size)
 
     # ------------------------------------------------------------------ the model interface

@@ -10,7 +10,7 @@ the sampling choices they all make the same way.
 import abc
 import math
 from collections.abc import Mapping
-from typing import Any
+from typing import Any, TypedDict
 
 import equinox as eqx
 import jax.numpy as jnp
@@ -37,22 +37,36 @@ def default_window_mm(extent_mm: float, aperture_npix: int) -> float:
     return extent_mm * aperture_npix / (aperture_npix - 4)
 
 
+class RasterSampling(TypedDict, total=False):
+    """The sampling choices a raster model's `build` hands on to :func:`build_propagator`
+    as they are (each optional: left out, it takes that function's default)."""
+
+    npix: int
+    pixel_scale_deg: float | None
+    aperture_npix: int
+    window_mm: float | None
+    propagation: str
+    method_options: Mapping[str, Any] | None
+
+
 def build_propagator(
     extent_mm: float,
     spectrum: Spectrum,
     *,
     focal_length_mm: float,
-    npix: int,
-    pixel_scale_deg: float | None,
-    aperture_npix: int,
-    window_mm: float | None,
-    propagation: str,
-    method: str,
+    npix: int = 512,
+    pixel_scale_deg: float | None = None,
+    aperture_npix: int = 256,
+    window_mm: float | None = None,
+    propagation: str = "fraunhofer",
+    method: str = "auto",
     method_options: Mapping[str, Any] | None = None,
     beyond_band: bool = False,
 ) -> AbstractPropagator:
     """A propagator whose window holds an aperture of `extent_mm` and suits the spectrum.
 
+    Its defaults are the static models' (aperture, eye, camera): their `build` hands on the
+    :class:`RasterSampling` it is given.
     A quad or polygon propagator still has to be :meth:`~invglare.optics.propagator.
     AbstractPropagator.prepared` for the model's aperture (see :func:`prepared_for`).
     `beyond_band`: see :func:`~invglare.optics.propagator.make_propagator`.

@@ -95,7 +95,7 @@ from invglare.dynamics.lens import safe_sqrt
 from invglare.dynamics.noise import uniform
 from invglare.dynamics.pupil import MOON_SPENCER_RANGE_MM
 from invglare.errors import ConfigError, InputDataError, PhysicsRangeError
-from invglare.models.base import broadcast_image, light_angle, light_angles
+from invglare.models.base import AbstractShiftInvariantModel, light_angle
 from invglare.models.raster import (
     AbstractRasterModel,
     build_propagator,
@@ -162,7 +162,7 @@ class SequenceConstants(eqx.Module):
     depths_mm: tuple  # per moving population: the particles' coordinate along the axis
 
 
-class TemporalGlare(AbstractRasterModel):
+class TemporalGlare(AbstractRasterModel, AbstractShiftInvariantModel):
     """The temporal glare model: a dynamic eye, its spectral Fresnel PSF, glare on frames.
 
     Build one with :meth:`build` (or from a config with
@@ -656,14 +656,6 @@ class TemporalGlare(AbstractRasterModel):
         """A frame's PSF (see :meth:`psf`); the same for every light direction."""
         light_angle(light_angle_deg)
         return self.psf(state)
-
-    def batch(self, light_angles_deg, batch_size=None) -> Float[Array, "K npix npix *c"]:
-        """The resting eye's PSF once per light (computed once)."""
-        return broadcast_image(self.psf(), light_angles(light_angles_deg).shape[0])
-
-    @property
-    def shift_invariant(self) -> bool:
-        return True
 
     def spot_raster(self) -> Float[Array, "n n"]:
         """The resting eye's aperture (its pupil at :attr:`field_luminance_cd_m2`)."""

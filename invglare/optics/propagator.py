@@ -176,10 +176,7 @@ class FresnelFFT(AbstractDiscretePropagator):
     method: ClassVar[str] = "fft"
 
     def __call__(self, field, wavelength_nm, *, open_area_mm2=None):
-        # The phase leaves the power through the aperture as it is: measured before it.
-        if open_area_mm2 is None:
-            open_area_mm2 = transmitted_power(field, self.grid.pitch_mm)
-        field = field * fresnel_phase(self.grid, wavelength_nm, self.focal_length_mm)
+        field, open_area_mm2 = _chirped(self, field, wavelength_nm, open_area_mm2)
         area_px = open_area_mm2 / self.grid.pitch_mm**2
         return intensity_fft(field, self.fft_npix, self.output.npix, open_area_px=area_px)
 
@@ -191,93 +188,103 @@ class FresnelMFT(AbstractDiscretePropagator):
     method: ClassVar[str] = "mft"
 
     def __call__(self, field, wavelength_nm, *, open_area_mm2=None):
-        if open_area_mm2 is None:
-            open_area_mm2 = transmitted_power(field, self.grid.pitch_mm)
-        field = field * fresnel_phase(self.grid, wavelength_nm, self.focal_length_mm)
+        field, open_area_mm2 = _chirped(self, field, wavelength_nm, open_area_mm2)
         return fraunhofer_mft(
             field, self.grid, wavelength_nm, self.output, open_area_mm2=open_area_mm2
         )
 
 
-class QuadFraunhofer(AbstractPropagator):
-    """Far field of the raster's quads in closed form (Scandolo et al., sec. 4.1-4.3).
+def _chirped(prop: AbstractPropagator, field, wavelength_nm, open_area_mm2):
+    """`field` times the Fresnel phase ``E`` over `prop`'s focal length, and the power through
+    the aperture: ``E`` leaves it as it is, so it is measured before (unless given)."""
+    if open_area_mm2 is None:
+        open_area_mm2 = transmitted_power(field, prop.grid.pitch_mm)
+    return field * fresnel_phase(prop.grid, wavelength_nm, prop.focal_length_mm), open_area_mm2
 
-    The raster is read as a piecewise-constant function: any output pixel scale and field,
-    no padding, no aliasing; it equals the MFT of the raster times the pixel's transfer
-    function ``sinc(f_x p) sinc(f_y p)``. `plan` (the quadtree, decided on a concrete
-    raster by :meth:`prepared`) and `tiles` (culling) are static.
-    """
+
+class AbstractQuadPropagator(AbstractPropagator):
+    """The raster's quads in closed form (Scandolo et al.): `plan` (the quadtree, decided on
+    a concrete raster by :meth:`prepared`) and `tiles` (culling) are static. A final
+    subclass supplies the transform (:meth:`_psf`) and its culling (:meth:`_tiles`)."""
 
     quad: QuadOptions = eqx.field(static=True, kw_only=True)
     wavelengths_nm: tuple[float, ...] = eqx.field(static=True, kw_only=True)
     plan: QuadPlan | None = eqx.field(static=True, default=None, kw_only=True)
     tiles: tuple | None = eqx.field(static=True, default=None, kw_only=True)
-    propagation: ClassVar[str] = "fraunhofer"
     method: ClassVar[str] = "quad"
     takes: ClassVar[str] = "raster"
+
+    @abc.abstractmethod
+    def _psf(self, plan, field, step, wavelength_nm, tiles, power_px):
+        """The PSF of the checked raster `field` at one wavelength (`step`: its output
+        pixel in cycles per raster pixel)."""
+
+    @abc.abstractmethod
+    def _tiles(self, plan, raster, steps) -> tuple | None:
+        """The culled tiles for the model's wavelengths (`steps`, one each)."""
 
     def __call__(self, field, wavelength_nm, *, open_area_mm2=None):
         prop = self if self.plan is not None else self.prepared(field)
         field = prepare.checked_raster(prop.plan, field, self.method)
         step = step_px(self.grid, self.output, wavelength_nm)
-        return quad_far_field(
-            prop.plan, field, step, self.output.npix, prepare.as_tiles(prop.tiles),
-            power_px=_area_px(open_area_mm2, self.grid),
+        return self._psf(
+            prop.plan, field, step, wavelength_nm, prepare.as_tiles(prop.tiles),
+            _area_px(open_area_mm2, self.grid),
         )  # fmt: skip
 
     def prepared(self, field):
         raster = prepare.concrete_raster(field, self.method)
         plan = prepare.quad_plan(raster, self.quad)
         steps = tuple(float(step_px(self.grid, self.output, w)) for w in self.wavelengths_nm)
-        tiles = prepare.quad_tiles(
-            plan, raster, self.quad, box_kernel, self.output.npix, steps,
-            (None,) * len(steps), far=True,
-        )  # fmt: skip
-        return dataclasses.replace(self, plan=plan, tiles=tiles)
+        return dataclasses.replace(self, plan=plan, tiles=self._tiles(plan, raster, steps))
 
     def options(self):
         return self.quad.to_dict()
 
 
-class QuadFresnel(AbstractPropagator):
+class QuadFraunhofer(AbstractQuadPropagator):
+    """Far field of the raster's quads in closed form (Scandolo et al., sec. 4.1-4.3).
+
+    The raster is read as a piecewise-constant function: any output pixel scale and field,
+    no padding, no aliasing; it equals the MFT of the raster times the pixel's transfer
+    function ``sinc(f_x p) sinc(f_y p)``.
+    """
+
+    propagation: ClassVar[str] = "fraunhofer"
+
+    def _psf(self, plan, field, step, wavelength_nm, tiles, power_px):
+        return quad_far_field(plan, field, step, self.output.npix, tiles, power_px=power_px)
+
+    def _tiles(self, plan, raster, steps):
+        return prepare.quad_tiles(
+            plan, raster, self.quad, box_kernel, self.output.npix, steps,
+            (None,) * len(steps), far=True,
+        )  # fmt: skip
+
+
+class QuadFresnel(AbstractQuadPropagator):
     """Near field (eq. 3 of Ritschel et al.; eq. 4 of Scandolo et al.) of the raster's quads,
     each by closed-form Fresnel integrals (sec. 4.5): no chirp to sample, so no aliasing at
     any distance and no minimum raster size. `focal_length_mm` is the distance."""
 
-    quad: QuadOptions = eqx.field(static=True, kw_only=True)
-    wavelengths_nm: tuple[float, ...] = eqx.field(static=True, kw_only=True)
-    plan: QuadPlan | None = eqx.field(static=True, default=None, kw_only=True)
-    tiles: tuple | None = eqx.field(static=True, default=None, kw_only=True)
     propagation: ClassVar[str] = "fresnel"
-    method: ClassVar[str] = "quad"
-    takes: ClassVar[str] = "raster"
 
     def alpha(self, wavelength_nm):
         """The chirp in raster pixels, ``pitch^2 / (lambda d)``."""
         return self.grid.pitch_mm**2 / (jnp.asarray(wavelength_nm) * 1e-6 * self.focal_length_mm)
 
-    def __call__(self, field, wavelength_nm, *, open_area_mm2=None):
-        prop = self if self.plan is not None else self.prepared(field)
-        field = prepare.checked_raster(prop.plan, field, self.method)
-        step = step_px(self.grid, self.output, wavelength_nm)
+    def _psf(self, plan, field, step, wavelength_nm, tiles, power_px):
         return quad_near_field(
-            prop.plan, field, step, self.alpha(wavelength_nm), self.output.npix,
-            prepare.as_tiles(prop.tiles), power_px=_area_px(open_area_mm2, self.grid),
+            plan, field, step, self.alpha(wavelength_nm), self.output.npix, tiles,
+            power_px=power_px,
         )  # fmt: skip
 
-    def prepared(self, field):
-        raster = prepare.concrete_raster(field, self.method)
-        plan = prepare.quad_plan(raster, self.quad)
-        steps = tuple(float(step_px(self.grid, self.output, w)) for w in self.wavelengths_nm)
+    def _tiles(self, plan, raster, steps):
         alphas = tuple(self.alpha(w) for w in self.wavelengths_nm)
-        tiles = prepare.quad_tiles(
+        return prepare.quad_tiles(
             plan, raster, self.quad, fresnel_kernel, self.output.npix, steps, alphas,
             far=False,
         )  # fmt: skip
-        return dataclasses.replace(self, plan=plan, tiles=tiles)
-
-    def options(self):
-        return self.quad.to_dict()
 
 
 class PolygonFraunhofer(AbstractPropagator):

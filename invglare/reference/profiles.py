@@ -67,6 +67,17 @@ def _check_scale(pixel_scale_deg) -> None:
         )
 
 
+def _image_and_scale(
+    psf: Float[ArrayLike, "*batch h w"], pixel_scale_deg: Float[ArrayLike, ""]
+) -> tuple[Float[Array, "*batch h w"], Float[Array, ""]]:
+    """The image (at least 2-D) and its pixel scale (deg), checked, as float arrays."""
+    image = as_float(psf)
+    if image.ndim < 2:
+        raise ValueError(f"psf must have at least 2 dimensions (h, w), got shape {image.shape}")
+    _check_scale(pixel_scale_deg)
+    return image, as_float(pixel_scale_deg)
+
+
 def _centre_and_radius(
     shape: tuple[int, ...], centre
 ) -> tuple[Array, Array, Float[Array, "h w"], float]:
@@ -137,11 +148,7 @@ def radial_profile(
     theta, prof = radial_profile(psf, 0.01, 20, 2.0)    # 20 annuli out to 2 deg
     ```
     """
-    image = as_float(psf)
-    if image.ndim < 2:
-        raise ValueError(f"psf must have at least 2 dimensions (h, w), got shape {image.shape}")
-    _check_scale(pixel_scale_deg)
-    scale = as_float(pixel_scale_deg)
+    image, scale = _image_and_scale(psf, pixel_scale_deg)
     _, _, r_px, r_edge = _centre_and_radius(image.shape, centre)
     r_max_px = r_edge if max_angle_deg is None else as_float(max_angle_deg) / scale
     if n_bins is None:
@@ -208,11 +215,7 @@ def encircled_energy(
     encircled_energy(psf, 0.01, jnp.array([0.05, 0.1, 0.5]))
     ```
     """
-    image = as_float(psf)
-    if image.ndim < 2:
-        raise ValueError(f"psf must have at least 2 dimensions (h, w), got shape {image.shape}")
-    _check_scale(pixel_scale_deg)
-    scale = as_float(pixel_scale_deg)
+    image, scale = _image_and_scale(psf, pixel_scale_deg)
     radii = as_float(radii_deg)
     r_out = radii.reshape(-1) / scale
 

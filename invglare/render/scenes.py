@@ -38,6 +38,7 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
 from invglare.errors import ConfigError, InputDataError
+from invglare.files.exr import first_flagged
 
 __all__ = [
     "SCENES",
@@ -411,28 +412,20 @@ def validate_scene(image: ArrayLike, *, name: str = "scene") -> np.ndarray:
         )
     if arr.dtype.kind not in "fiub":
         raise InputDataError(f"{name} must hold real numbers; got dtype {arr.dtype}")
-    channels = ("R", "G", "B") if arr.ndim == 3 and arr.shape[-1] == 3 else None
-
-    def where(mask: np.ndarray) -> str:
-        idx = np.unravel_index(int(np.argmax(mask)), mask.shape)
-        text = f"row {int(idx[0])}, column {int(idx[1])}"
-        if arr.ndim == 3:
-            c = int(idx[2])
-            text += f", channel {channels[c] if channels else c}"
-        return text
+    channels = ("R", "G", "B") if arr.ndim == 3 and arr.shape[-1] == 3 else ()
 
     bad = ~np.isfinite(arr)
     if bad.any():
         n_nan = int(np.isnan(arr).sum())
         raise InputDataError(
             f"{name} has {int(bad.sum())} non-finite pixel value(s) ({n_nan} NaN, "
-            f"{int(bad.sum()) - n_nan} Inf), first at {where(bad)}; expected finite "
-            "linear values (cd/m^2)"
+            f"{int(bad.sum()) - n_nan} Inf), first at {first_flagged(bad, channels)}; "
+            "expected finite linear values (cd/m^2)"
         )
     neg = arr < 0
     if neg.any():
         raise InputDataError(
             f"{name} has {int(neg.sum())} negative pixel value(s) (minimum {float(arr.min()):g}), "
-            f"first at {where(neg)}; expected linear values >= 0 (cd/m^2)"
+            f"first at {first_flagged(neg, channels)}; expected linear values >= 0 (cd/m^2)"
         )
     return arr

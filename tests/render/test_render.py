@@ -491,7 +491,7 @@ def test_validate_scene_reports_bad_pixels():
     neg[2, 3, 2] = -0.5
     neg[3, 4, 0] = -2.0
     with pytest.raises(
-        InputDataError, match=r"2 negative .*minimum -2.*row 2, column 3, channel B"
+        InputDataError, match=r"2 negative .*minimum -2.*row 2, column 3, channel 'B'"
     ):
         validate_scene(neg, name="photo.exr")
     for shape in [(5,), (2, 3, 4, 3), (0, 4)]:
