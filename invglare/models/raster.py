@@ -65,11 +65,12 @@ def build_propagator(
 ) -> AbstractPropagator:
     """A propagator whose window holds an aperture of `extent_mm` and suits the spectrum.
 
-    Its defaults are the static models' (aperture, eye, camera): their `build` hands on the
-    :class:`RasterSampling` it is given.
     A quad or polygon propagator still has to be :meth:`~invglare.optics.propagator.
     AbstractPropagator.prepared` for the model's aperture (see :func:`prepared_for`).
     `beyond_band`: see :func:`~invglare.optics.propagator.make_propagator`.
+
+    The defaults are the static models' (aperture, eye, camera): their `build` hands on the
+    :class:`RasterSampling` it is given.
     """
     if isinstance(aperture_npix, bool) or not isinstance(aperture_npix, int) or aperture_npix < 8:
         raise PhysicsRangeError(f"aperture_npix must be an integer >= 8, got {aperture_npix}")
