@@ -41,7 +41,7 @@ from invglare.bench.quad_cases import QUAD_CASES, quad_markdown
 from invglare.bench.sample import SAMPLE_CASES
 from invglare.bench.temporal_cases import TEMPORAL_CASES, stage_markdown
 from invglare.bench.timing import load_1m, measure
-from invglare.bench.torch_cases import TORCH_CASES, overhead_markdown
+from invglare.bench.torch_cases import TORCH_CASES, overhead_markdown, passive_openmp
 from invglare.bench.unknown_draw import UNKNOWN_DRAW_CASES
 from invglare.bench.veiling_cases import VEILING_CASES
 from invglare.errors import ConfigError
@@ -81,6 +81,10 @@ NOTES = (
     "as the `invglare` command sets it; `retain_freed_memory` in bench.json's meta says "
     "whether it took effect): otherwise XLA's per-call buffers are mapped and zeroed anew "
     "by the kernel on every call.",
+    "PyTorch's OpenMP threads wait passively (`OMP_WAIT_POLICY=PASSIVE`, set by the "
+    "benchmark unless the environment gives another value; `omp_wait_policy` in bench.json's "
+    "meta): spinning, they would take a core from XLA's threads and the torch rows would "
+    'time that contention instead of the bridge (docs/torch.md, "Threads on a CPU").',
 )
 
 
@@ -149,6 +153,7 @@ def _meta() -> dict[str, Any]:
         "jax": f"{jax.__version__} ({jax.default_backend()})",
         "xla_flags": os.environ.get("XLA_FLAGS", ""),
         "retain_freed_memory": retain_freed_memory(),
+        "omp_wait_policy": passive_openmp(),
         "notes": list(NOTES),
     }
 
@@ -206,6 +211,7 @@ def run_bench(
     records: list[dict] = []
     fit_records: list[dict] = []
     failed: list[str] = []
+    meta["not_installed"] = not_installed = []
 
     def save_partial() -> None:
         write_json_atomic(partial, {"meta": meta, "records": records, "fit": fit_records})
@@ -216,6 +222,8 @@ def run_bench(
             fn = case.make(n)
             if fn is None:
                 log.info("skipping %s: not installed here", case.name)
+                if case.name not in not_installed:
+                    not_installed.append(case.name)
                 continue
             # Fewer repeats at large sizes keep the whole run to minutes.
             reps = max(3, repeats // max(1, (n // 512) ** 2))
@@ -348,6 +356,19 @@ def _add_ratios(records: list[dict]) -> None:
         r["vs_forward"] = round(r["median_ms"] / fwd["median_ms"], 3) if fwd else None
 
 
+def _missing_floors(meta: dict) -> str:
+    """A sentence naming the FFT floors the timed run could not measure (none: empty)."""
+    timed = meta.get("timings_from") or meta
+    missing = [n for n in timed.get("not_installed", []) if n.startswith("fft_floor_")]
+    if not missing:
+        return ""
+    return (
+        f" Not installed for this run: {', '.join(f'`{n}`' for n in missing)} (the `bench` "
+        "extra installs pyfftw), so the floor is the other library's alone and the ratios "
+        "compare with it."
+    )
+
+
 def _cpu_line(cpu: dict | None) -> str:
     """The processor and its vector extensions: runs on other machines differ by them."""
     if not cpu:
@@ -396,7 +417,7 @@ def render_markdown(records: list[dict], meta: dict, fit_records: list[dict] | N
             "## Ratio to the FFT floor",
             "",
             "Median time over the fastest bare complex64 FFT of the same size (scipy or "
-            "pyfftw, 2 threads) measured in this run.",
+            "pyfftw, 2 threads) measured in this run." + _missing_floors(meta),
             "",
             "| case | " + " | ".join(f"N={n}" for n in sizes) + " |",
             "|---|" + "---:|" * len(sizes),

@@ -15,6 +15,10 @@ warm-up step that compiles), and effective samples per second, ``walkers / (tau_
 seconds per step)``, with ``tau_max`` the largest integrated autocorrelation time of the
 committed chain (``reports/eye_daylight/posterior/summary.json``) when there is one: a
 few timed steps cannot estimate tau, and tau does not depend on how fast a step runs.
+
+Where one walker's time goes (:func:`walker_parts`): the log-probability of one walker at
+the fit, and its parts compiled and timed on their own, calls alternating — the model's
+PSF, the observation (sub-pixel shift, flux, background) and the pixel likelihood.
 """
 
 from __future__ import annotations
@@ -39,6 +43,8 @@ CONFIG = ROOT / "fits" / "eye_daylight.toml"
 WALKERS = 32
 #: Batch sizes of the vectorized mode (emcee evaluates half the walkers per call).
 BATCHES = (16, 8, 4, 1)
+#: Alternating timed calls of each part of a walker's evaluation.
+PART_REPEATS = 30
 
 
 def _shown(path: Path) -> str:
@@ -64,6 +70,59 @@ def _time_steps(sampler, start: np.ndarray, n_steps: int) -> list[float]:
         state = sampler.run_mcmc(state, 1, progress=False)
         times.append(time.perf_counter() - t0)
     return times
+
+
+def walker_parts(lp: Any, latent: Any, repeats: int = PART_REPEATS) -> list[dict[str, Any]]:
+    """Milliseconds of one walker's log-probability at `latent` and of each of its parts.
+
+    Each part is compiled on its own and the calls alternate, so that the machine's load
+    falls on all alike. XLA fuses across the parts inside the whole walker, so the parts
+    need not add up to it exactly. Pixel likelihoods only (a views posterior has no
+    observation step): ``[]`` otherwise.
+    """
+    import equinox as eqx
+    import jax
+    import jax.numpy as jnp
+
+    if lp.likelihood != "pixels":
+        return []
+    z = jnp.asarray(latent)
+    fwd = lp.space.apply(lp.forward, lp.space.from_latent(z))
+    psf = fwd.psf()
+    expected = fwd.obs.expected(psf)
+
+    def likelihood(post, e):
+        return post.forward.obs.log_likelihood(
+            post.target, e, censoring=post.censoring, mask=post.mask, censored=post.censored
+        )
+
+    parts = {
+        "model PSF": (eqx.filter_jit(lambda f: f.model()), (fwd,)),
+        "observation (shift, flux, background)": (
+            eqx.filter_jit(lambda o, p: o.expected(p)),
+            (fwd.obs, psf),
+        ),
+        "pixel likelihood": (eqx.filter_jit(likelihood), (lp, expected)),
+        "whole walker (log-probability)": (eqx.filter_jit(lambda post, x: post(x)), (lp, z)),
+    }
+    times: dict[str, list[float]] = {name: [] for name in parts}
+    for f, args in parts.values():
+        jax.block_until_ready(f(*args))  # compile first
+    for _ in range(repeats):
+        for name, (f, args) in parts.items():
+            t0 = time.perf_counter()
+            jax.block_until_ready(f(*args))
+            times[name].append(time.perf_counter() - t0)
+    whole = float(np.median(times["whole walker (log-probability)"]))
+    return [
+        {
+            "part": name,
+            "ms": 1e3 * float(np.median(t)),
+            "min_ms": 1e3 * float(np.min(t)),
+            "share": float(np.median(t)) / whole,
+        }
+        for name, t in times.items()
+    ]
 
 
 def run_sample_benchmark(
@@ -158,6 +217,7 @@ def run_sample_benchmark(
             t0 = time.perf_counter()
             times = _time_steps(sampler, start, n_steps)
             add("vectorize off", None, times, time.perf_counter() - t0 - sum(times))
+        record["walker_parts"] = walker_parts(lp, setup.space.to_latent(fit_result.values))
     record["load_1m_end"] = load_1m()
     return record
 
@@ -192,7 +252,21 @@ def sample_markdown(record: dict[str, Any]) -> list[str]:
             f"{m['walker_eval_ms']:.1f} | {m['first_step_s']:.1f} | "
             f"{'—' if ess is None else format(ess, '.3g')} |"
         )
+    parts = record.get("walker_parts") or []
+    if parts:
+        lines += [
+            "",
+            "Where one walker's time goes, at the fit: each part compiled on its own, "
+            f"{PART_REPEATS} calls each, alternating (the whole walker fuses across parts, so "
+            "they need not add up to it).",
+            "",
+            "| part | median ms | min ms | share of the walker |",
+            "|---|---:|---:|---:|",
+        ]
+        lines += [
+            f"| {p['part']} | {p['ms']:.2f} | {p['min_ms']:.2f} | {p['share']:.0%} |" for p in parts
+        ]
     return lines
 
 
-__all__ = ["SAMPLE_CASES", "run_sample_benchmark", "sample_markdown"]
+__all__ = ["SAMPLE_CASES", "run_sample_benchmark", "sample_markdown", "walker_parts"]

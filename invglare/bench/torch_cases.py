@@ -20,15 +20,18 @@ at most 10 % + 0.2 ms over the twin at 256² and 512².
 records into the overhead table. ``python -m invglare.bench.torch_cases`` times every
 pair side by side (calls alternating, so the machine's load falls on both alike) and
 prints that table. torch is imported only inside the cases: importing this module does
-not need it. Run it with ``OMP_WAIT_POLICY=PASSIVE`` on a machine with few cores: PyTorch's
-spinning OpenMP threads otherwise slow XLA's (docs/torch.md, "Threads on a CPU"), which
-is no cost of the bridge.
+not need it. Both ``invglare bench`` and this module's ``main`` run them with
+``OMP_WAIT_POLICY=PASSIVE`` unless the environment sets it (:func:`passive_openmp`): on a
+machine with few cores PyTorch's spinning OpenMP threads otherwise slow XLA's
+(docs/torch.md, "Threads on a CPU"), which is no cost of the bridge.
 """
 
 from __future__ import annotations
 
 import argparse
+import os
 import statistics
+import sys
 import time
 from collections.abc import Callable
 
@@ -50,6 +53,17 @@ def _torch():
     except ImportError:
         return None
     return torch
+
+
+def passive_openmp() -> str:
+    """``OMP_WAIT_POLICY`` as the torch cases will run with it: PASSIVE unless already set.
+
+    OpenMP reads it once, when PyTorch is first imported, so it is set only before that
+    (a process that imported torch already keeps what it had).
+    """
+    if "torch" not in sys.modules:
+        os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+    return os.environ.get("OMP_WAIT_POLICY", "")
 
 
 def _weights(shape: tuple[int, ...], seed: int) -> np.ndarray:
@@ -328,6 +342,7 @@ def main(argv: list[str] | None = None) -> list[dict]:
     parser.add_argument("sizes", nargs="*", type=int, default=[256, 512])
     parser.add_argument("--repeats", type=int, default=30)
     args = parser.parse_args(argv)
+    passive_openmp()
     makers = {c.name: c.make for c in TORCH_CASES}
     records = []
     for n in args.sizes:

@@ -8,6 +8,7 @@ busy 2-core machine), so they are marked slow.
 import importlib.util
 import json
 import math
+import os
 import sys
 import time
 from pathlib import Path
@@ -17,7 +18,7 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
-from invglare.bench import runner
+from invglare.bench import runner, torch_cases
 from invglare.bench.batch import BATCH_CASES
 from invglare.bench.fit import FIT_CASES, FitProblem, FreeParameter, fit_markdown, run_fit_benchmark
 from invglare.bench.runner import (
@@ -201,6 +202,14 @@ def test_run_bench_writes_json_and_markdown_with_ratios_from_the_records(tmp_pat
     md = (tmp_path / "bench.md").read_text()
     assert "## Ratio to the FFT floor" in md and "## All timings" in md
     assert f"| psf_mono | {TINY} |" in md and "JAX's CPU FFT" in md and "## Fit" not in md
+    # A floor the machine lacks is named where the ratios are explained.
+    has_pyfftw = "fft_floor_pyfftw" in names
+    assert meta["not_installed"] == ([] if has_pyfftw else ["fft_floor_pyfftw"])
+    assert ("Not installed for this run: `fft_floor_pyfftw`" in md) == (not has_pyfftw)
+    # A fit-only rerun keeps the per-size timings and says what their run lacked.
+    timed = {**meta, "not_installed": ["fft_floor_pyfftw"]}
+    redrawn = runner.render_markdown(records, {**meta, "not_installed": [], "timings_from": timed})
+    assert "Not installed for this run: `fft_floor_pyfftw`" in redrawn
 
 
 def test_run_bench_releases_each_case_s_compiled_programs(tmp_path):
@@ -243,6 +252,21 @@ def test_a_fit_only_run_keeps_the_timings_and_the_other_way_round(tmp_path):
     _add_ratios(recs)
     md = render_markdown(recs, {"date": "now", "machine": "m", "jax": "j", **meta})
     assert "| psf_mono | 64 |" in md
+
+
+def test_openmp_waits_passively_unless_the_environment_says_otherwise(monkeypatch):
+    """Set before torch loads, PASSIVE is the default; a user's value and a process that
+    already imported torch (OpenMP has read the variable) are left alone."""
+    modules = {k: v for k, v in sys.modules.items() if k != "torch"}
+    monkeypatch.setattr(sys, "modules", modules)
+    monkeypatch.delenv("OMP_WAIT_POLICY", raising=False)
+    assert torch_cases.passive_openmp() == "PASSIVE"
+    monkeypatch.setenv("OMP_WAIT_POLICY", "ACTIVE")
+    assert torch_cases.passive_openmp() == "ACTIVE"
+    monkeypatch.delenv("OMP_WAIT_POLICY")
+    monkeypatch.setitem(modules, "torch", object())
+    assert torch_cases.passive_openmp() == ""
+    assert "OMP_WAIT_POLICY" not in os.environ
 
 
 def test_measure_stops_at_the_budget_after_the_minimum_repeats():
@@ -377,9 +401,19 @@ def test_sample_benchmark_times_batched_and_per_walker_steps_of_a_fit(tmp_path):
         assert m["step_ms"] >= m["min_step_ms"] > 0 and m["first_step_s"] > 0
         assert m["walker_eval_ms"] == pytest.approx(m["step_ms"] / 32)
         assert m["effective_samples_per_s"] == pytest.approx(32 / (40.0 * m["step_ms"] / 1e3))
+    parts = {p["part"]: p for p in record["walker_parts"]}
+    assert list(parts) == [
+        "model PSF",
+        "observation (shift, flux, background)",
+        "pixel likelihood",
+        "whole walker (log-probability)",
+    ]
+    assert all(p["ms"] >= p["min_ms"] > 0 for p in parts.values())
+    assert parts["whole walker (log-probability)"]["share"] == 1.0
     md = "\n".join(sample_markdown(record))
     assert "## Sampling: sample_daylight_eye (64x64 photo)" in md and "tau_max = 40.0" in md
     assert "| vectorize off | — |" in md
+    assert "| model PSF |" in md and "| whole walker (log-probability) |" in md and "100%" in md
 
 
 def test_veiling_bench_series_and_direct_draw_the_same_ghosts():
