@@ -88,38 +88,39 @@ def walker_parts(lp: Any, latent: Any, repeats: int = PART_REPEATS) -> list[dict
         return []
     z = jnp.asarray(latent)
     fwd = lp.space.apply(lp.forward, lp.space.from_latent(z))
-    psf = fwd.psf()
-    expected = fwd.obs.expected(psf)
+    model = eqx.filter_jit(lambda f: f.model())
+    observe = eqx.filter_jit(lambda o, p: o.expected(p))
 
+    @eqx.filter_jit
     def likelihood(post, e):
         return post.forward.obs.log_likelihood(
             post.target, e, censoring=post.censoring, mask=post.mask, censored=post.censored
         )
 
+    # The compiling calls also give each part its input.
+    psf = jax.block_until_ready(model(fwd))
+    expected = jax.block_until_ready(observe(fwd.obs, psf))
+    whole = eqx.filter_jit(lambda post, x: post(x))
+    jax.block_until_ready((likelihood(lp, expected), whole(lp, z)))
     parts = {
-        "model PSF": (eqx.filter_jit(lambda f: f.model()), (fwd,)),
-        "observation (shift, flux, background)": (
-            eqx.filter_jit(lambda o, p: o.expected(p)),
-            (fwd.obs, psf),
-        ),
-        "pixel likelihood": (eqx.filter_jit(likelihood), (lp, expected)),
-        "whole walker (log-probability)": (eqx.filter_jit(lambda post, x: post(x)), (lp, z)),
+        "model PSF": (model, (fwd,)),
+        "observation (shift, flux, background)": (observe, (fwd.obs, psf)),
+        "pixel likelihood": (likelihood, (lp, expected)),
+        "whole walker (log-probability)": (whole, (lp, z)),
     }
     times: dict[str, list[float]] = {name: [] for name in parts}
-    for f, args in parts.values():
-        jax.block_until_ready(f(*args))  # compile first
     for _ in range(repeats):
         for name, (f, args) in parts.items():
             t0 = time.perf_counter()
             jax.block_until_ready(f(*args))
             times[name].append(time.perf_counter() - t0)
-    whole = float(np.median(times["whole walker (log-probability)"]))
+    whole_ms = float(np.median(times["whole walker (log-probability)"]))
     return [
         {
             "part": name,
             "ms": 1e3 * float(np.median(t)),
             "min_ms": 1e3 * float(np.min(t)),
-            "share": float(np.median(t)) / whole,
+            "share": float(np.median(t)) / whole_ms,
         }
         for name, t in times.items()
     ]
