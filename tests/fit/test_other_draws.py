@@ -7,9 +7,10 @@ fits them, and the committed batch reports of all eight eyes checked.
 
 What these fits recover (README, "Eyes the model did not draw"): the pupil, the grating
 spacing and the source; the daylight eye's lash count and mean angle only loosely, and not
-always within their local standard errors (the statistics' objective has several minima in
-the count). What every report must then do is say so: each parameter whose known truth lies
-beyond 3 standard errors carries a ``truth_beyond_3se`` flag.
+always within their local standard errors (an eye's own lashes can read as a lash or two
+more than it has, and the first stage can land on another minimum in count and angle).
+What every report must then do is say so: each parameter whose known truth lies beyond 3
+standard errors carries a ``truth_beyond_3se`` flag.
 """
 
 from __future__ import annotations
@@ -81,6 +82,59 @@ def test_a_night_eye_the_model_did_not_draw() -> None:
     _check_flags_tell(result.paths, v, result.stderr, t, result.flags)
     assert abs(v[PUPIL] / t[PUPIL] - 1.0) < 0.02, (v[PUPIL], t[PUPIL])
     assert abs(v[SPACING] / t[SPACING] - 1.0) < 0.03, (v[SPACING], t[SPACING])
+
+
+@pytest.mark.slow
+def test_eyes_drawn_anew_at_one_truth_give_lash_counts_within_a_lash_or_two() -> None:
+    """What the statistics recover from eyes the model did not draw, apart from where a fit
+    starts: four daylight eyes drawn as ``invglare synth`` draws them (other eye seeds,
+    other noise) at the truth of the third bundled eye, each fitted from that truth with the
+    scatter between eyes measured there, as the final stage of the bundled config does.
+    Their lash counts scatter about the truth by about a lash (README, "Eyes the model did
+    not draw"), their pupils by about 1 % (one of the four is 2.3 % small)."""
+    import copy
+    import dataclasses
+
+    import jax
+    import jax.numpy as jnp
+    import numpy as np
+
+    from invglare.config.synth import load_synth_specs
+    from invglare.config.synth_photo import build_truth_forward
+    from invglare.fit import fit
+    from invglare.fit.draw_scatter import scatter_options
+    from invglare.fit.views import make_residual_fn
+
+    name = "eye_daylight_other_draws"
+    spec = load_synth_specs(ROOT / "data_synthetic" / f"{name}.toml")[2]
+    row = _population(name)[2]
+    config = ROOT / "fits" / f"{name}.toml"
+    job = PhotoJob("eye_02", ROOT / "data_synthetic" / name / row["photo"])
+    counts, pupils = [], []
+    with helpers.x64():
+        setup = load_fit(config, config=photo_config(load_toml(config), job))
+        space, template, views = setup.space, setup.forward, setup.views
+        truth = np.asarray([setup.truth[p] for p in space.paths])
+        latent = space.to_latent(jnp.asarray(truth))
+        first = make_residual_fn(space, template, setup.target, views,
+                                 view_options=setup.view_options)  # fmt: skip
+        options = scatter_options(first, latent, setup.view_options)
+        for k in range(4):
+            model_config = copy.deepcopy(spec.model_config)
+            model_config["model"]["eye"]["seed"] = 7000 + k
+            eye = build_truth_forward(
+                dataclasses.replace(spec, model_config=model_config, seed=900 + k)
+            )
+            photo = eye.obs.sample(jax.random.key(900 + k), eye.model())
+            result = fit(space, template, np.asarray(photo, np.float64), views,
+                         starts=truth[None], n_starts=1, view_options=options, max_steps=60,
+                         batch="loop", diagnostics=False, final_likelihood=False)  # fmt: skip
+            counts.append(result.values[COUNT])
+            pupils.append(result.values[PUPIL])
+    t = setup.truth
+    assert all(abs(c - t[COUNT]) < 2.0 for c in counts), (counts, t[COUNT])
+    assert abs(np.mean(counts) - t[COUNT]) < 1.0, (counts, t[COUNT])
+    assert all(abs(d / t[PUPIL] - 1.0) < 0.03 for d in pupils), (pupils, t[PUPIL])
 
 
 def test_the_bundled_photos_were_drawn_with_other_seeds_than_the_models() -> None:
