@@ -15,17 +15,27 @@ standard errors carries a ``truth_beyond_3se`` flag.
 
 from __future__ import annotations
 
+import copy
 import csv
+import dataclasses
 import json
 import math
 from pathlib import Path
 
 import helpers
+import jax
+import jax.numpy as jnp
+import numpy as np
 import pytest
 
 from invglare.config.batch import PhotoJob, photo_config
 from invglare.config.fit import load_fit
+from invglare.config.synth import load_synth_specs
+from invglare.config.synth_photo import build_truth_forward
 from invglare.files.toml import load_toml
+from invglare.fit import fit
+from invglare.fit.draw_scatter import scatter_options
+from invglare.fit.views import make_residual_fn
 
 ROOT = Path(__file__).resolve().parents[2]
 PUPIL = "model.aperture.pupil.diameter_mm"
@@ -39,12 +49,16 @@ def _population(name: str) -> list[dict[str, str]]:
         return list(csv.DictReader(f))
 
 
-def _fit(name: str, photo: str):
+def _setup(name: str, photo: str):
+    """The bundled fit config `name` pointed at one of its photos (call under x64)."""
     config = ROOT / "fits" / f"{name}.toml"
     job = PhotoJob(photo.removesuffix(".exr"), ROOT / "data_synthetic" / name / photo)
+    return load_fit(config, config=photo_config(load_toml(config), job))
+
+
+def _fit(name: str, photo: str):
     with helpers.x64():
-        setup = load_fit(config, config=photo_config(load_toml(config), job))
-        return setup.fit()
+        return _setup(name, photo).fit()
 
 
 def _check_flags_tell(paths, values, stderr, truth, flags) -> dict[str, float]:
@@ -92,27 +106,11 @@ def test_eyes_drawn_anew_at_one_truth_give_lash_counts_within_a_lash_or_two() ->
     scatter between eyes measured there, as the final stage of the bundled config does.
     Their lash counts scatter about the truth by about a lash (README, "Eyes the model did
     not draw"), their pupils by about 1 % (one of the four is 2.3 % small)."""
-    import copy
-    import dataclasses
-
-    import jax
-    import jax.numpy as jnp
-    import numpy as np
-
-    from invglare.config.synth import load_synth_specs
-    from invglare.config.synth_photo import build_truth_forward
-    from invglare.fit import fit
-    from invglare.fit.draw_scatter import scatter_options
-    from invglare.fit.views import make_residual_fn
-
     name = "eye_daylight_other_draws"
     spec = load_synth_specs(ROOT / "data_synthetic" / f"{name}.toml")[2]
-    row = _population(name)[2]
-    config = ROOT / "fits" / f"{name}.toml"
-    job = PhotoJob("eye_02", ROOT / "data_synthetic" / name / row["photo"])
     counts, pupils = [], []
     with helpers.x64():
-        setup = load_fit(config, config=photo_config(load_toml(config), job))
+        setup = _setup(name, _population(name)[2]["photo"])
         space, template, views = setup.space, setup.forward, setup.views
         truth = np.asarray([setup.truth[p] for p in space.paths])
         latent = space.to_latent(jnp.asarray(truth))
@@ -122,9 +120,7 @@ def test_eyes_drawn_anew_at_one_truth_give_lash_counts_within_a_lash_or_two() ->
         for k in range(4):
             model_config = copy.deepcopy(spec.model_config)
             model_config["model"]["eye"]["seed"] = 7000 + k
-            eye = build_truth_forward(
-                dataclasses.replace(spec, model_config=model_config, seed=900 + k)
-            )
+            eye = build_truth_forward(dataclasses.replace(spec, model_config=model_config))
             photo = eye.obs.sample(jax.random.key(900 + k), eye.model())
             result = fit(space, template, np.asarray(photo, np.float64), views,
                          starts=truth[None], n_starts=1, view_options=options, max_steps=60,
