@@ -73,6 +73,18 @@ def _check_flags_tell(paths, values, stderr, truth, flags) -> dict[str, float]:
     return pulls
 
 
+def _read_report(folder: Path):
+    """A fit report's params.json, its values and truths, and its pulls (each truth beyond 3
+    standard errors checked to be flagged)."""
+    data = json.loads((folder / "params.json").read_text())
+    params = data["parameters"]
+    values = {p: q["value"] for p, q in params.items()}
+    stderr = {p: q["stderr"] for p, q in params.items()}
+    truth = {p: q["truth"] for p, q in params.items()}
+    pulls = _check_flags_tell(list(params), values, stderr, truth, data["flags"])
+    return data, values, truth, pulls
+
+
 @pytest.mark.slow
 def test_a_daylight_eye_the_model_did_not_draw(tmp_path) -> None:
     """The README's ``invglare fit fits/eye_daylight_other_draws.toml`` in full (its target
@@ -85,12 +97,7 @@ def test_a_daylight_eye_the_model_did_not_draw(tmp_path) -> None:
     out = tmp_path / "fit"
     done = CliRunner().invoke(app, ["fit", str(config), "--out-dir", str(out), "--no-progress"])
     assert done.exit_code == 0, done.output
-    params = json.loads((out / "params.json").read_text())
-    entries = params["parameters"]
-    v = {p: e["value"] for p, e in entries.items()}
-    t = {p: e["truth"] for p, e in entries.items()}
-    stderr = {p: e["stderr"] for p, e in entries.items()}
-    pulls = _check_flags_tell(list(entries), v, stderr, t, params["flags"])
+    params, v, t, pulls = _read_report(out)
     assert abs(v[PUPIL] / t[PUPIL] - 1.0) < 0.02, (v[PUPIL], t[PUPIL])
     assert abs(v[COUNT] - t[COUNT]) < 2.0, (v[COUNT], t[COUNT])
     assert all(abs(pulls[p]) < 3.0 for p in (PUPIL, *SOURCE)), pulls
@@ -160,12 +167,7 @@ def test_the_bundled_photos_were_drawn_with_other_seeds_than_the_models() -> Non
 def _committed(name: str):
     for row in _population(name):
         report = ROOT / "reports" / name / "batch" / row["photo"].removesuffix(".exr")
-        data = json.loads((report / "params.json").read_text())
-        params = data["parameters"]
-        values = {p: q["value"] for p, q in params.items()}
-        stderr = {p: q["stderr"] for p, q in params.items()}
-        truth = {p: q["truth"] for p, q in params.items()}
-        pulls = _check_flags_tell(list(params), values, stderr, truth, data["flags"])
+        _, values, truth, pulls = _read_report(report)
         yield row["photo"], values, truth, pulls
 
 
