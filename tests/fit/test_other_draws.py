@@ -18,7 +18,6 @@ from __future__ import annotations
 import copy
 import csv
 import dataclasses
-import json
 import math
 from pathlib import Path
 
@@ -37,6 +36,7 @@ from invglare.config.synth_photo import build_truth_forward
 from invglare.files.toml import load_toml
 from invglare.fit import fit
 from invglare.fit.draw_scatter import scatter_options
+from invglare.fit.result import FitResult
 from invglare.fit.views import make_residual_fn
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -73,18 +73,6 @@ def _check_flags_tell(paths, values, stderr, truth, flags) -> dict[str, float]:
     return pulls
 
 
-def _read_report(folder: Path):
-    """A fit report's params.json, its values and truths, and its pulls (each truth beyond 3
-    standard errors checked to be flagged)."""
-    data = json.loads((folder / "params.json").read_text())
-    params = data["parameters"]
-    values = {p: q["value"] for p, q in params.items()}
-    stderr = {p: q["stderr"] for p, q in params.items()}
-    truth = {p: q["truth"] for p, q in params.items()}
-    pulls = _check_flags_tell(list(params), values, stderr, truth, data["flags"])
-    return data, values, truth, pulls
-
-
 @pytest.mark.slow
 def test_a_daylight_eye_the_model_did_not_draw(tmp_path) -> None:
     """The README's ``invglare fit fits/eye_daylight_other_draws.toml`` in full (its target
@@ -97,11 +85,13 @@ def test_a_daylight_eye_the_model_did_not_draw(tmp_path) -> None:
     out = tmp_path / "fit"
     done = CliRunner().invoke(app, ["fit", str(config), "--out-dir", str(out), "--no-progress"])
     assert done.exit_code == 0, done.output
-    params, v, t, pulls = _read_report(out)
+    result = FitResult.from_json(out / "params.json")
+    v, t = result.values, result.truth
+    pulls = _check_flags_tell(result.paths, v, result.stderr, t, result.flags)
     assert abs(v[PUPIL] / t[PUPIL] - 1.0) < 0.02, (v[PUPIL], t[PUPIL])
     assert abs(v[COUNT] - t[COUNT]) < 2.0, (v[COUNT], t[COUNT])
     assert all(abs(pulls[p]) < 3.0 for p in (PUPIL, *SOURCE)), pulls
-    assert "simulated eyes" in params["message"]
+    assert "simulated eyes" in result.message
 
 
 @pytest.mark.slow
@@ -167,8 +157,9 @@ def test_the_bundled_photos_were_drawn_with_other_seeds_than_the_models() -> Non
 def _committed(name: str):
     for row in _population(name):
         report = ROOT / "reports" / name / "batch" / row["photo"].removesuffix(".exr")
-        _, values, truth, pulls = _read_report(report)
-        yield row["photo"], values, truth, pulls
+        r = FitResult.from_json(report / "params.json")
+        pulls = _check_flags_tell(r.paths, r.values, r.stderr, r.truth, r.flags)
+        yield row["photo"], r.values, r.truth, pulls
 
 
 def test_the_committed_daylight_batch_recovers_pupil_and_source_and_flags_the_rest() -> None:
