@@ -10,27 +10,32 @@ suite's workers and the commands they start (some of them killed on purpose).
 :func:`make_cache_writes_atomic` makes each write whole or absent: the entry is written to
 a temporary file in the same folder and renamed into place. It changes nothing else
 (same keys, same contents, same eviction when a size limit is set) and costs one rename
-per compiled program. It is installed when :mod:`invglare._core` is imported.
+per compiled program. Importing :mod:`invglare._core` installs it, at once if JAX is
+loaded and otherwise when JAX loads (it does not load JAX itself).
 """
 
 from __future__ import annotations
 
 import contextlib
+import importlib.abc
+import importlib.util
 import os
+import sys
 import tempfile
 from pathlib import Path
+from types import ModuleType
+from typing import Any
 
-from jax._src import lru_cache
+#: JAX's module holding the cache's file store (loaded by ``import jax``).
+_STORE = "jax._src.lru_cache"
 
-_original_put = lru_cache.LRUCache.put
 
-
-def _atomic_put(self: lru_cache.LRUCache, key: str, value: bytes) -> None:
+def _atomic_put(self: Any, key: str, value: bytes) -> None:
     # With a size limit JAX holds a file lock around every read and write: already safe.
     if self.eviction_enabled or not isinstance(self.path, Path) or not key:
-        _original_put(self, key, value)
+        self._invglare_original_put(key, value)
         return
-    final = self.path / f"{key}{lru_cache._CACHE_SUFFIX}"
+    final = self.path / f"{key}{sys.modules[_STORE]._CACHE_SUFFIX}"
     if final.exists():
         return
     # The temporary name does not end in the cache's suffix, so no reader or eviction
@@ -46,11 +51,49 @@ def _atomic_put(self: lru_cache.LRUCache, key: str, value: bytes) -> None:
         raise
 
 
+def _patch(store: ModuleType) -> None:
+    cache = store.LRUCache
+    if cache.put is not _atomic_put:
+        cache._invglare_original_put = cache.put
+        cache.put = _atomic_put
+
+
+class _PatchWhenLoaded(importlib.abc.MetaPathFinder, importlib.abc.Loader):
+    """Finds JAX's cache module the usual way, and patches it right after it runs."""
+
+    def find_spec(self, name: str, path: Any = None, target: Any = None) -> Any:
+        if name != _STORE:
+            return None
+        sys.meta_path.remove(self)  # the other finders now find it, once
+        spec = importlib.util.find_spec(name)
+        if spec is None or spec.loader is None:
+            return spec
+        self._loader = spec.loader
+        spec.loader = self
+        return spec
+
+    def create_module(self, spec: Any) -> ModuleType | None:
+        return self._loader.create_module(spec)
+
+    def exec_module(self, module: ModuleType) -> None:
+        self._loader.exec_module(module)
+        _patch(module)
+
+
 def make_cache_writes_atomic() -> None:
-    """Make JAX's compilation-cache writes atomic in this process (idempotent)."""
-    lru_cache.LRUCache.put = _atomic_put  # type: ignore[method-assign]
+    """Make JAX's compilation-cache writes atomic in this process (idempotent).
+
+    Does not import JAX: with JAX not loaded yet, the patch is made when it loads, so the
+    commands that must answer before JAX loads (``invglare --help``, config errors) stay
+    fast.
+    """
+    if _STORE in sys.modules:
+        _patch(sys.modules[_STORE])
+    elif not any(isinstance(f, _PatchWhenLoaded) for f in sys.meta_path):
+        sys.meta_path.insert(0, _PatchWhenLoaded())
 
 
 def cache_writes_are_atomic() -> bool:
-    """Whether :func:`make_cache_writes_atomic` is in effect in this process."""
-    return lru_cache.LRUCache.put is _atomic_put
+    """Whether JAX is loaded and its compilation-cache writes are atomic in this process."""
+    store = sys.modules.get(_STORE)
+    return store is not None and store.LRUCache.put is _atomic_put

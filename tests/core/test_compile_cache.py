@@ -29,6 +29,20 @@ def test_importing_invglare_makes_the_writes_atomic():
     assert out.stdout.split() == ["False", "True"]
 
 
+def test_the_patch_waits_for_jax_to_load_and_does_not_load_it():
+    script = (
+        "import sys, invglare._core\n"
+        "from invglare._core.compile_cache import cache_writes_are_atomic\n"
+        "print('jax' in sys.modules, cache_writes_are_atomic())\n"
+        "import jax\n"
+        "print(cache_writes_are_atomic())"
+    )
+    out = subprocess.run(
+        [sys.executable, "-c", script], capture_output=True, text=True, check=True, timeout=120
+    )
+    assert out.stdout.split() == ["False", "False", "True"]
+
+
 def test_an_entry_reads_back_and_leaves_no_partial_file(tmp_path):
     cache = lru_cache.LRUCache(str(tmp_path), max_size=-1)
     payload = os.urandom(1 << 16)
