@@ -16,6 +16,13 @@ def _files(folder) -> list[str]:
     return sorted(os.listdir(folder))
 
 
+def _printed(script: str, *args: str, env: dict | None = None) -> list[str]:
+    """The words a fresh Python process prints running `script`."""
+    done = subprocess.run([sys.executable, "-c", script, *args], capture_output=True, text=True,
+                          check=True, timeout=120, env=env)  # fmt: skip
+    return done.stdout.split()
+
+
 def test_importing_invglare_makes_the_writes_atomic():
     script = (
         "import jax._src.lru_cache as c; before = c.LRUCache.put\n"
@@ -23,10 +30,7 @@ def test_importing_invglare_makes_the_writes_atomic():
         "from invglare._core.compile_cache import cache_writes_are_atomic\n"
         "print(before is c.LRUCache.put, cache_writes_are_atomic())"
     )
-    out = subprocess.run(
-        [sys.executable, "-c", script], capture_output=True, text=True, check=True, timeout=120
-    )
-    assert out.stdout.split() == ["False", "True"]
+    assert _printed(script) == ["False", "True"]
 
 
 def test_the_patch_waits_for_jax_to_load_and_does_not_load_it():
@@ -37,10 +41,7 @@ def test_the_patch_waits_for_jax_to_load_and_does_not_load_it():
         "import jax\n"
         "print(cache_writes_are_atomic())"
     )
-    out = subprocess.run(
-        [sys.executable, "-c", script], capture_output=True, text=True, check=True, timeout=120
-    )
-    assert out.stdout.split() == ["False", "False", "True"]
+    assert _printed(script) == ["False", "False", "True"]
 
 
 def test_an_entry_reads_back_and_leaves_no_partial_file(tmp_path):
@@ -86,18 +87,8 @@ def test_a_jitted_program_is_cached_and_loaded_by_another_process(tmp_path):
     )
     folder = tmp_path / "cache"
     env = {k: v for k, v in os.environ.items() if not k.startswith("JAX_COMPILATION_CACHE")}
-    runs = [
-        subprocess.run(
-            [sys.executable, "-c", script, str(folder)],
-            capture_output=True,
-            text=True,
-            check=True,
-            timeout=120,
-            env=env,
-        )
-        for _ in range(2)
-    ]
-    (value, hits_first), (again, hits_second) = (r.stdout.split() for r in runs)
+    runs = [_printed(script, str(folder), env=env) for _ in range(2)]
+    (value, hits_first), (again, hits_second) = runs
     assert value == again and float(value) == pytest.approx(3 * 0.8414709848)
     assert int(hits_first) == 0 and int(hits_second) >= 1
     entries = _files(folder)
