@@ -15,7 +15,8 @@ os.environ.setdefault("JAX_PLATFORMS", "cpu")
 # machine it took tests/aperture's fast tests from 204 s to 174 s. INVGLARE_JAX_CACHE names
 # another folder (kept between runs), or "off". Cache writes are atomic
 # (invglare._core.compile_cache): a process killed mid-write, as the kill tests do, or
-# a reader racing a writer never loads a truncated program.
+# a reader racing a writer never loads a truncated program. (Before they were, two full runs
+# with a shared cache lost an xdist worker to a segfault in XLA's executable deserialisation.)
 _cache = os.environ.get("INVGLARE_JAX_CACHE", "")
 _made_cache = None
 if not _cache:
