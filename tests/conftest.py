@@ -16,7 +16,7 @@ os.environ.setdefault("JAX_PLATFORMS", "cpu")
 # another folder (kept between runs), or "off". Cache writes are atomic
 # (invglare._core.compile_cache): a process killed mid-write, as the kill tests do, or
 # a reader racing a writer never loads a truncated program. (Before they were, two full runs
-# with a shared cache lost an xdist worker to a segfault in XLA's executable deserialisation.)
+# with a shared cache lost an xdist worker to a segfault in XLA's executable (de)serialisation.)
 _cache = os.environ.get("INVGLARE_JAX_CACHE", "")
 _made_cache = None
 if not _cache:
