@@ -10,7 +10,10 @@ suite's workers and the commands they start (some of them killed on purpose).
 :func:`make_cache_writes_atomic` makes each write whole or absent: the entry is written to
 a temporary file in the same folder and renamed into place. It changes nothing else
 (same keys, same contents, same eviction when a size limit is set) and costs one rename
-per compiled program. Importing :mod:`invglare._core` installs it, at once if JAX is
+per compiled program (no fsync: a lost cache entry is only compiled again). It does not
+call :func:`invglare.files.atomic.atomic_path`, invglare's atomic writer, because this
+tier lies below ``files`` and must install the patch in every process that imports
+invglare. Importing :mod:`invglare._core` installs it, at once if JAX is
 loaded and otherwise when JAX loads (it does not load JAX itself).
 """
 
