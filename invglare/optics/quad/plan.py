@@ -20,8 +20,9 @@ from jaxtyping import Array
 
 from invglare.optics.quad.quadtree import DigestIdentity, QuadLayout
 
-#: Largest asymmetry (relative to the raster's largest value) still called a symmetry.
-MIRROR_TOLERANCE = 1e-4
+#: Largest odd part still called a symmetry: its sum of absolute values over the raster's
+#: (see :func:`detect_mirrors`).
+MIRROR_TOLERANCE = 1e-6
 
 
 def _mirrored(arr: np.ndarray, axis: int) -> np.ndarray:
@@ -41,13 +42,22 @@ def detect_mirrors(raster, tolerance: float = MIRROR_TOLERANCE) -> tuple[bool, b
     """Whether a raster is symmetric under ``x -> -x`` and under ``y -> -y`` (about 0).
 
     The grid origin is pixel ``n // 2`` (see :mod:`invglare._core.grids`); values without a
-    mirror partner must be zero. Equal to `tolerance` times the largest absolute value.
+    mirror partner count as asymmetric. An axis is a mirror when the raster's odd part
+    ``o = (t - t_mirrored) / 2`` is small in sum: ``sum |o| <= tolerance * sum |t|``.
+
+    Why a sum and not the largest pixel: skipping the odd part changes the transform at
+    any frequency by at most ``sum |o|``, and the transform's peak of a non-negative
+    raster is ``sum t``, so the far or near field moves by at most ``2 * tolerance`` of
+    its peak intensity wherever the mirror is used. Rounding of a float32 soft raster is
+    not a reason to lose the mirror: invglare's own coverage rasters of symmetric shapes
+    differ from their mirror images by up to 1.2e-4 per edge pixel at 1024 px (2.3e-4 at
+    2048), far below the bound in sum (their odd parts are below 1e-7 of the raster's sum).
     """
     arr = np.asarray(raster, dtype=np.float64)
-    limit = tolerance * float(np.max(np.abs(arr)))
+    limit = 2.0 * tolerance * float(np.sum(np.abs(arr)))
     return (
-        bool(np.max(np.abs(arr - _mirrored(arr, 1))) <= limit),
-        bool(np.max(np.abs(arr - _mirrored(arr, 0))) <= limit),
+        bool(np.sum(np.abs(arr - _mirrored(arr, 1))) <= limit),
+        bool(np.sum(np.abs(arr - _mirrored(arr, 0))) <= limit),
     )
 
 
