@@ -56,7 +56,7 @@ from invglare.optics.fraunhofer import fraunhofer_mft, intensity_fft, transmitte
 from invglare.optics.fresnel import fresnel_near_field, fresnel_phase, near_field_fft_npix
 from invglare.optics.quad import prepare
 from invglare.optics.quad.farfield import quad_far_field
-from invglare.optics.quad.nearfield import fresnel_kernel, quad_near_field
+from invglare.optics.quad.nearfield import fresnel_kernel, lattice_ratio, quad_near_field
 from invglare.optics.quad.options import (
     PolygonOptions,
     QuadOptions,
@@ -267,16 +267,29 @@ class QuadFresnel(AbstractQuadPropagator):
     each by closed-form Fresnel integrals (sec. 4.5): no chirp to sample, so no aliasing at
     any distance and no minimum raster size. `focal_length_mm` is the distance."""
 
+    #: ``step / alpha`` as a fraction where it is one (the lattice table of
+    #: :mod:`invglare.optics.quad.nearfield`), found by :meth:`prepared`; None: none.
+    ratio: float | None = eqx.field(static=True, default=None, kw_only=True)
     propagation: ClassVar[str] = "fresnel"
 
     def alpha(self, wavelength_nm):
         """The chirp in raster pixels, ``pitch^2 / (lambda d)``."""
         return self.grid.pitch_mm**2 / (jnp.asarray(wavelength_nm) * 1e-6 * self.focal_length_mm)
 
+    def prepared(self, field):
+        # step / alpha = dtheta d / pitch: the output pixel at the distance in raster
+        # pixels, the same at every wavelength.
+        ratio = (
+            float(self.output.pixel_scale_rad)
+            * float(self.focal_length_mm)
+            / float(self.grid.pitch_mm)
+        )
+        return dataclasses.replace(super().prepared(field), ratio=lattice_ratio(ratio))
+
     def _psf(self, plan, field, step, wavelength_nm, tiles, power_px):
         return quad_near_field(
             plan, field, step, self.alpha(wavelength_nm), self.output.npix, tiles,
-            power_px=power_px,
+            power_px=power_px, ratio=self.ratio,
         )  # fmt: skip
 
     def _tiles(self, plan, raster, steps):

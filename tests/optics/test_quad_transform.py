@@ -223,6 +223,23 @@ def test_polygon_transform_matches_the_independent_reference():
 # --------------------------------------------------------------------------- near field
 
 
+def _square_near_setup(fresnel_number, ratio, npix=101):
+    """The 41 px square of the test above at a Fresnel number, observed with an output pixel
+    of `ratio` raster pixels at the distance: (plan, field, step, alpha, reference PSF)."""
+    n, side_px, pitch = 64, 41, 0.025
+    s = side_px * pitch
+    raster = np.zeros((n, n))
+    lo = n // 2 - side_px // 2
+    raster[lo : lo + side_px, lo : lo + side_px] = 1.0
+    d = s * s / (LAM * 1e-6 * fresnel_number)
+    dtheta = ratio * pitch / d
+    step = dtheta * pitch / (LAM * 1e-6)
+    alpha = pitch * pitch / (LAM * 1e-6 * d)
+    xs = (np.arange(npix) - npix // 2) * dtheta * d
+    ref = fresnel_square_intensity(xs[None, :], xs[:, None], s, LAM, d) * (d * dtheta) ** 2
+    return _plan(raster), raster, step, alpha, ref / (s * s)
+
+
 @pytest.mark.parametrize("fresnel_number", [1, 5, 20])
 @pytest.mark.parametrize("dtype", [np.float32, np.float64])
 def test_square_near_field_matches_fresnel_integrals_to_1e4_of_peak(fresnel_number, dtype):
@@ -231,21 +248,92 @@ def test_square_near_field_matches_fresnel_integrals_to_1e4_of_peak(fresnel_numb
     error is round-off (measured 3e-15 in float64, 2e-6 in float32); the chirp-sampled
     MFT of the same raster errs 3e-4, 5e-3 and 5e-2 of the peak (FresnelMFT)."""
     with x64():
-        n, side_px, pitch = 64, 41, 0.025
-        s = side_px * pitch
-        raster = np.zeros((n, n), dtype)
-        lo = n // 2 - side_px // 2
-        raster[lo : lo + side_px, lo : lo + side_px] = 1.0
-        d = s * s / (LAM * 1e-6 * fresnel_number)
-        npix = 101
-        dtheta = 0.75 * s / (npix // 2) / d
-        step = dtheta * pitch / (LAM * 1e-6)
-        alpha = pitch * pitch / (LAM * 1e-6 * d)
-        psf = quad_near_field(_plan(raster), jnp.asarray(raster), dtype(step), dtype(alpha), npix)
-        xs = (np.arange(npix) - npix // 2) * dtheta * d
-        ref = fresnel_square_intensity(xs[None, :], xs[:, None], s, LAM, d) * (d * dtheta) ** 2
-        ref /= s * s
+        # Output pixel 0.75 s / 50 at the distance: 0.615 raster pixels.
+        plan, raster, step, alpha, ref = _square_near_setup(fresnel_number, 0.615)
+        field = jnp.asarray(raster, dtype)
+        psf = quad_near_field(plan, field, dtype(step), dtype(alpha), 101)
     assert np.max(np.abs(np.asarray(psf, np.float64) - ref)) < 1e-4 * ref.max()
+
+
+@pytest.mark.parametrize("ratio", [1.0, 2.0, 0.5])
+@pytest.mark.parametrize("fresnel_number", [1, 5, 20])
+def test_square_near_field_by_the_lattice_table_matches_fresnel_integrals(fresnel_number, ratio):
+    """The lattice table (the Fresnel integrals once per distinct argument, for an output
+    pixel of `ratio` raster pixels at the distance; 1: the raster's own grid) gives the
+    closed form to 1e-10 of the peak in float64, and the whole table's field to 1e-12."""
+    from invglare.optics.quad.nearfield import lattice_ratio
+
+    with x64():
+        plan, raster, step, alpha, ref = _square_near_setup(fresnel_number, ratio)
+        assert lattice_ratio(step / alpha) == ratio
+        field = jnp.asarray(raster)
+        psf = np.asarray(quad_near_field(plan, field, step, alpha, 101, ratio=ratio))
+        whole = np.asarray(quad_near_field(plan, field, step, alpha, 101))
+    assert np.max(np.abs(psf - ref)) < 1e-10 * ref.max()
+    assert np.max(np.abs(psf - whole)) < 1e-12 * ref.max()
+
+
+def test_lattice_table_is_used_at_its_ratio_only(monkeypatch):
+    """With the lattice's evaluation spoilt on purpose (its Fresnel integrals doubled), the
+    field changes where the lattice is used (its ratio, within float32 rounding) and not
+    where the call's ratio has moved from it (a changed distance: the whole table), under
+    jit and under vmap over distances (both branches run there)."""
+    from invglare.optics.quad import nearfield
+
+    evaluate = nearfield.fresnel_e
+    spoilt = lambda s: evaluate(s) * (2.0 if s.ndim == 1 else 1.0)  # noqa: E731
+    monkeypatch.setattr(nearfield, "fresnel_e", spoilt)
+    plan, raster, step, alpha, _ = _square_near_setup(5, 1.0)
+    field = jnp.asarray(raster, jnp.float32)
+    run = jax.jit(lambda st, al, ratio: quad_near_field(plan, field, st, al, 101, ratio=ratio),
+                  static_argnums=2)  # fmt: skip
+
+    def differs(st, al):
+        a, b = np.asarray(run(st, al, 1.0)), np.asarray(run(st, al, None))
+        return np.max(np.abs(a - b)) / b.max()
+
+    step32, alpha32 = jnp.float32(step), jnp.float32(alpha)
+    assert differs(step32, alpha32) > 0.1  # the spoilt lattice is used
+    ulp = float(jnp.finfo(jnp.float32).eps)
+    assert differs(step32 * (1 + 3 * ulp), alpha32) > 0.1  # a ratio rounded off by 3 ulp
+    assert differs(step32 * (1 + 100 * ulp), alpha32) < 1e-6  # 100 ulp: another ratio
+    assert differs(step32, alpha32 * 1.01) < 1e-6  # moved: the whole table
+    alphas = jnp.asarray([alpha, 1.01 * alpha], jnp.float32)
+    many = jax.vmap(lambda al: run(step32, al, 1.0))(alphas)
+    whole = jax.vmap(lambda al: run(step32, al, None))(alphas)
+    rel = np.max(np.abs(np.asarray(many - whole)), axis=(1, 2)) / np.asarray(whole).max()
+    assert rel[0] > 0.1 and rel[1] < 1e-6
+
+
+def test_lattice_table_gradients_are_the_whole_tables():
+    """float64, the 64 px heptagon on its own grid: the gradient with respect to the chirp
+    (the distance), the output pixel and a soft edge pixel through the lattice table equals
+    the whole table's to 1e-10 and converging central differences (whose steps leave the
+    lattice's ratio, so they evaluate the whole table)."""
+    with x64():
+        raster = jnp.asarray(paper_raster("heptagon", 64))
+        plan = _plan(raster, symmetric=False)
+        edge = tuple(int(v) for v in np.argwhere((raster > 0.2) & (raster < 0.8))[0])
+        alpha0 = 4.0 * 10.0 / 60.0**2
+        w = jnp.asarray(np.random.default_rng(1).random((64, 64)))
+
+        def loss(args, ratio):
+            alpha, step, value = args
+            psf = quad_near_field(plan, raster.at[edge].set(value), step, alpha, 64, ratio=ratio)
+            return jnp.sum(w * psf)
+
+        x0 = (alpha0, alpha0, raster[edge])  # step = alpha: ratio 1
+        lattice = jax.jit(jax.grad(lambda a: loss(a, 1.0)))(x0)
+        whole = jax.jit(jax.grad(lambda a: loss(a, None)))(x0)
+        np.testing.assert_allclose(np.asarray(lattice), np.asarray(whole), rtol=1e-10)
+        f = jax.jit(lambda a: loss(a, 1.0))
+        for i in range(3):
+            h = 1e-6 * abs(float(x0[i]))
+            up = list(x0)
+            down = list(x0)
+            up[i], down[i] = x0[i] + h, x0[i] - h
+            fd = (f(tuple(up)) - f(tuple(down))) / (2 * h)
+            np.testing.assert_allclose(float(lattice[i]), float(fd), rtol=1e-6)
 
 
 # ------------------------------------------------------------------------------ culling

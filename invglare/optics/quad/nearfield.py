@@ -22,6 +22,19 @@ quads are combined by the matrix products of :mod:`.transform` (second pass). Mi
 symmetries of the aperture are used as in the far field (there is no Hermitian symmetry
 here: the chirp is complex).
 
+**The lattice table.** With ``r = step / alpha`` (the output pixel at the distance over the
+raster pitch, ``dtheta d / pitch``; the same at every wavelength) the table's arguments are
+``s = sqrt(2 alpha) (e - k r)`` for edges ``e`` (multiples of half a pixel) and output
+indices ``k``. When ``r`` is a fraction ``p / q`` with a small ``q`` (the raster observed on
+its own grid: ``r = 1``), ``e - k r`` takes few distinct values, each shared by a diagonal of
+the table: ``E`` is evaluated once per value (about 2 000 instead of 500 000 at 1024 px, the
+Fresnel integrals being a third of the near field's time there) and spread by a gather.
+:class:`QuadFresnel <invglare.optics.propagator.QuadFresnel>` finds ``r`` when it is
+prepared. The value is exact only at that ``r`` (up to the float rounding of computing
+``r``): a call at another one (a fitted distance that has moved) evaluates the whole table
+instead, and the derivative is always the whole table's, ``dE/ds = exp(i pi s^2 / 2)`` per
+entry.
+
 The near field has the far field's normalisation: ``|U|^2 (dtheta / lambda)^2`` per pixel
 over the power through the aperture (the whole plane holds the represented raster's
 ``sum |t|^2 / sum |t|`` of it, as for the far field).
@@ -29,6 +42,10 @@ over the power through the aperture (the whole plane holds the represented raste
 
 from __future__ import annotations
 
+import dataclasses
+import math
+
+import jax
 import jax.numpy as jnp
 import numpy as np
 from jax.scipy.special import fresnel
@@ -45,15 +62,90 @@ def fresnel_e(s: Float[Array, "*shape"]) -> Complex[Array, "*shape"]:
     return c_int + 1j * s_int
 
 
+#: The lattice table's value is used at a ratio ``r`` within this many float roundings
+#: (units in the last place) of the one it was built for: ``r`` computed in float32 from
+#: the grid's pixel and the distance is no closer, and the whole table's own arguments carry
+#: the same rounding. Farther (a moved distance, a finite difference in float64), the whole
+#: table is evaluated.
+LATTICE_ULPS = 8
+#: Denominators ``q`` of the ratios ``p / q`` the lattice table recognises.
+LATTICE_DENOMINATORS = tuple(range(1, 9))
+#: The lattice table is used when it needs at most this fraction of the whole table's
+#: Fresnel evaluations.
+_LATTICE_WORTH = 0.25
+
+
+def lattice_ratio(ratio: float) -> float | None:
+    """`ratio` as a fraction ``p / q`` (``q`` in :data:`LATTICE_DENOMINATORS`) when it is one
+    within 1e-6 relative (the float32 rounding of the grid's pixel and distance), else None."""
+    if not (math.isfinite(ratio) and ratio > 0):
+        return None
+    for q in LATTICE_DENOMINATORS:
+        p = round(ratio * q)
+        if p > 0 and abs(ratio * q - p) <= 1e-6 * ratio * q:
+            return p / q
+    return None
+
+
+@dataclasses.dataclass(frozen=True)
+class LatticeFresnelKernel:
+    """:func:`fresnel_kernel` for an output whose ``step / alpha`` is `ratio` (static,
+    from :func:`lattice_ratio`): the Fresnel integrals by the lattice table."""
+
+    ratio: float
+
+    def __call__(self, centre_px, width_px, axis: FreqAxis, alpha):
+        return fresnel_kernel(centre_px, width_px, axis, alpha, self.ratio)
+
+
+def _lattice_table(edges: np.ndarray, index: np.ndarray, ratio: float):
+    """The Fresnel table ``E(root (e - k r))`` as a function of ``(root, r)``, evaluated once
+    per distinct ``e - k ratio`` while ``r`` is `ratio` (None where that saves little)."""
+    shift = edges[:, None] - index[None, :] * ratio
+    values, inverse = np.unique(np.round(shift, 9), return_inverse=True)
+    if values.size > _LATTICE_WORTH * shift.size:
+        return None
+    inverse = inverse.reshape(shift.shape)
+
+    def dense_args(root, r):
+        e = jnp.asarray(edges, r.dtype)[:, None]
+        return root * (e - jnp.asarray(index, r.dtype)[None, :] * r)
+
+    @jax.custom_jvp
+    def table(root, r):
+        def lattice(root, r):
+            return fresnel_e(root * jnp.asarray(values, r.dtype))[inverse]
+
+        def dense(root, r):
+            return fresnel_e(dense_args(root, r))
+
+        own = jnp.abs(r - ratio) <= LATTICE_ULPS * jnp.finfo(r.dtype).eps * ratio
+        return jax.lax.cond(own, lattice, dense, root, r)
+
+    @table.defjvp
+    def _table_jvp(primals, tangents):
+        root, r = primals
+        d_root, d_r = tangents
+        s = dense_args(root, r)
+        e = jnp.asarray(edges, r.dtype)[:, None]
+        k = jnp.asarray(index, r.dtype)[None, :]
+        ds = d_root * (e - k * r) - root * k * d_r
+        phase = (0.5 * math.pi) * s * s
+        return table(root, r), jax.lax.complex(jnp.cos(phase), jnp.sin(phase)) * ds
+
+    return table
+
+
 def fresnel_kernel(
-    centre_px, width_px, axis: FreqAxis, alpha: Float[Array, ""]
+    centre_px, width_px, axis: FreqAxis, alpha: Float[Array, ""], ratio: float | None = None
 ) -> tuple[Complex[Array, "n m"], Complex[Array, "n m"]]:
     """Near-field axis kernel: the parts of ``g`` even and odd in the interval's centre.
 
     ``g(f; c)`` over ``[c - w/2, c + w/2]`` without the common phase; ``g(f; -c) = g(-f;
     c)``, so the even part is ``(g(f; c) + g(-f; c)) / 2`` and the odd part the difference.
     Both come from one table of ``E`` at the distinct edges ``+-(c +- w/2)`` (intervals
-    given as traced arrays: one row per edge).
+    given as traced arrays: one row per edge). `ratio`: ``step / alpha`` where the lattice
+    table may be used (see the module's docstring; None: the whole table).
     """
     dtype = axis.step.dtype
     if isinstance(centre_px, np.ndarray):
@@ -65,9 +157,14 @@ def fresnel_kernel(
         edges = jnp.concatenate([c - w / 2.0, c + w / 2.0, -c - w / 2.0, -c + w / 2.0])
         where = np.arange(edges.shape[0]).reshape(4, -1)
     root = jnp.sqrt(2.0 * alpha)
-    freq = axis.freq(dtype)
-    s = root * (jnp.asarray(edges, dtype)[:, None] - freq[None, :] / alpha)
-    table = fresnel_e(s)
+    lattice = None
+    if ratio is not None and isinstance(edges, np.ndarray) and axis.offset is None:
+        lattice = _lattice_table(edges, np.asarray(axis.index, np.float64), ratio)
+    if lattice is not None:
+        table = lattice(root, axis.step / alpha)
+    else:
+        freq = axis.freq(dtype)
+        table = fresnel_e(root * (jnp.asarray(edges, dtype)[:, None] - freq[None, :] / alpha))
     scale = 1.0 / root
     plus = (table[where[1]] - table[where[0]]) * scale  # g(f; c)
     minus = (table[where[3]] - table[where[2]]) * scale  # g(f; -c) = g(-f; c)
@@ -81,9 +178,12 @@ def near_field_terms(
     alpha: Float[ArrayLike, ""],
     npix: int,
     tiles: Tiles | None = None,
+    ratio: float | None = None,
 ) -> tuple[Array, Array, Array, Array]:
-    """The near-field parity terms (complex, px^2; see :func:`~.transform.quadrant_terms`)."""
-    return quadrant_terms(plan, fresnel_kernel, amplitudes, step_px, npix, alpha, tiles)
+    """The near-field parity terms (complex, px^2; see :func:`~.transform.quadrant_terms`);
+    `ratio` as for :func:`fresnel_kernel`."""
+    kernel = fresnel_kernel if ratio is None else LatticeFresnelKernel(ratio)
+    return quadrant_terms(plan, kernel, amplitudes, step_px, npix, alpha, tiles)
 
 
 def near_field_from_terms(
@@ -113,16 +213,18 @@ def quad_near_field(
     npix: int,
     tiles: Tiles | None = None,
     power_px: Float[ArrayLike, ""] | None = None,
+    ratio: float | None = None,
 ) -> Float[Array, "npix npix"]:
     """Fresnel PSF of the raster's quads on an ``npix`` output grid, per unit power.
 
     The arguments are those of :func:`~invglare.optics.quad.farfield.quad_far_field`, and
     `alpha`, the chirp in raster pixels, ``pitch^2 / (lambda d)`` (``4 N_F / D_px^2`` for
-    a Fresnel number ``N_F`` of an aperture ``D_px`` pixels across).
+    a Fresnel number ``N_F`` of an aperture ``D_px`` pixels across); `ratio`, where given,
+    ``step_px / alpha`` as a static fraction (:func:`lattice_ratio`), for the lattice table.
 
     **Returns:** the PSF (fraction of the power through the aperture per pixel), indexed
     by the angle ``theta = x' / d`` of the observation point ``x'``.
     """
     amps, power = plan_amplitudes(plan, raster)
-    terms = near_field_terms(plan, amps, step_px, alpha, npix, tiles)
+    terms = near_field_terms(plan, amps, step_px, alpha, npix, tiles, ratio)
     return near_field_from_terms(terms, power if power_px is None else power_px, step_px, npix)
