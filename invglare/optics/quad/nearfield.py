@@ -51,6 +51,7 @@ import numpy as np
 from jax.scipy.special import fresnel
 from jaxtyping import Array, ArrayLike, Complex, Float
 
+from invglare._core.xla import materialise
 from invglare.optics.quad.farfield import _TINY_POWER, plan_amplitudes
 from invglare.optics.quad.plan import QuadPlan
 from invglare.optics.quad.transform import FreqAxis, Tiles, quadrant_terms, unfold
@@ -166,9 +167,13 @@ def fresnel_kernel(
         freq = axis.freq(dtype)
         table = fresnel_e(root * (jnp.asarray(edges, dtype)[:, None] - freq[None, :] / alpha))
     scale = 1.0 / root
+    # The table and the kernels are put in memory: fused into each of their readers (real
+    # and imaginary parts, the sum of Gauss's product), XLA's CPU gathers ran per element
+    # for each (the near field at 1024 px: circle 52 -> 38 ms, whirl 127 -> 113 ms).
+    table = materialise(table)
     plus = (table[where[1]] - table[where[0]]) * scale  # g(f; c)
     minus = (table[where[3]] - table[where[2]]) * scale  # g(f; -c) = g(-f; c)
-    return 0.5 * (plus + minus), 0.5 * (plus - minus)
+    return materialise(0.5 * (plus + minus)), materialise(0.5 * (plus - minus))
 
 
 def near_field_terms(
