@@ -33,6 +33,7 @@ from invglare.bench.quad_cases import (
     near_distance_mm,
     shadow_frames,
 )
+from invglare.bench.runner import cpu_line
 from invglare.optics.quad.apertures import PAPER_APERTURES, paper_grid, paper_raster
 
 DECADES = 6.0
@@ -449,19 +450,6 @@ def write_report(out_dir: Path, quick: bool = False) -> Path:
     return write_text_atomic(out_dir / "report.md", text)
 
 
-def _cpu_words(meta: dict) -> str:
-    """The timed CPU, as the bench recorded it: ratios to the FFT floor differ between CPUs
-    (the FFT and the quads' matrix products do not gain alike from wider vector units)."""
-    cpu = meta.get("cpu") or {}
-    if not cpu:
-        return ""
-    extensions = ", ".join(cpu.get("vector_extensions") or []) or "none recorded"
-    return (
-        f" ({cpu.get('model', 'unknown CPU')}, vector extensions {extensions}; ratios to the "
-        "FFT floor differ between CPUs)"
-    )
-
-
 def render(measured: dict, records: list[dict], meta: dict, sizes) -> str:
     counts = measured["table1"]
     lines = [
@@ -472,7 +460,8 @@ def render(measured: dict, records: list[dict], meta: dict, sizes) -> str:
         "reports/quad` (timings: [bench.md](bench.md)). "
         + (
             f"Timings of {meta.get('date')}, load average {meta.get('load_1m_start')} to "
-            f"{meta.get('load_1m_end')} on 2 shared cores{_cpu_words(meta)}."
+            f"{meta.get('load_1m_end')} on 2 shared cores. {cpu_line(meta.get('cpu'))} Ratios "
+            "to the FFT floor differ between CPUs."
             if meta
             else "No timings yet."
         ),

@@ -369,7 +369,7 @@ def _missing_floors(meta: dict) -> str:
     )
 
 
-def _cpu_line(cpu: dict | None) -> str:
+def cpu_line(cpu: dict | None) -> str:
     """The processor and its vector extensions: runs on other machines differ by them."""
     if not cpu:
         return "CPU: not recorded."
@@ -396,7 +396,7 @@ def render_markdown(records: list[dict], meta: dict, fit_records: list[dict] | N
         f"(1 min) {meta.get('load_1m_start')} at the start, {meta.get('load_1m_end')} at the "
         f"end; the run took {meta.get('wall_s', '?')} s.",
         "",
-        _cpu_line(meta.get("cpu")),
+        cpu_line(meta.get("cpu")),
         "",
         *[f"- {note}" for note in meta.get("notes", [])],
         "",

@@ -108,9 +108,10 @@ def _lattice_table(edges: np.ndarray, index: np.ndarray, ratio: float):
         return None
     inverse = inverse.reshape(shift.shape)
 
-    def dense_args(root, r):
-        e = jnp.asarray(edges, r.dtype)[:, None]
-        return root * (e - jnp.asarray(index, r.dtype)[None, :] * r)
+    def shifts(r):
+        """``(e - k r, k)`` over the whole table."""
+        k = jnp.asarray(index, r.dtype)[None, :]
+        return jnp.asarray(edges, r.dtype)[:, None] - k * r, k
 
     @jax.custom_jvp
     def table(root, r):
@@ -118,7 +119,7 @@ def _lattice_table(edges: np.ndarray, index: np.ndarray, ratio: float):
             return fresnel_e(root * jnp.asarray(values, r.dtype))[inverse]
 
         def dense(root, r):
-            return fresnel_e(dense_args(root, r))
+            return fresnel_e(root * shifts(r)[0])
 
         own = jnp.abs(r - ratio) <= LATTICE_ULPS * jnp.finfo(r.dtype).eps * ratio
         return jax.lax.cond(own, lattice, dense, root, r)
@@ -127,10 +128,9 @@ def _lattice_table(edges: np.ndarray, index: np.ndarray, ratio: float):
     def _table_jvp(primals, tangents):
         root, r = primals
         d_root, d_r = tangents
-        s = dense_args(root, r)
-        e = jnp.asarray(edges, r.dtype)[:, None]
-        k = jnp.asarray(index, r.dtype)[None, :]
-        ds = d_root * (e - k * r) - root * k * d_r
+        shift, k = shifts(r)
+        s = root * shift
+        ds = d_root * shift - root * k * d_r
         phase = (0.5 * math.pi) * s * s
         return table(root, r), jax.lax.complex(jnp.cos(phase), jnp.sin(phase)) * ds
 
