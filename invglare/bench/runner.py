@@ -40,8 +40,8 @@ from invglare.bench.peer_cases import PEER_CASES, cpu_info
 from invglare.bench.quad_cases import QUAD_CASES, quad_markdown
 from invglare.bench.sample import SAMPLE_CASES
 from invglare.bench.temporal_cases import TEMPORAL_CASES, stage_markdown
-from invglare.bench.timing import load_1m, measure
-from invglare.bench.torch_cases import TORCH_CASES, overhead_markdown, passive_openmp
+from invglare.bench.timing import load_1m, measure_together
+from invglare.bench.torch_cases import PAIRS, TORCH_CASES, overhead_markdown, passive_openmp
 from invglare.bench.unknown_draw import UNKNOWN_DRAW_CASES
 from invglare.bench.veiling_cases import VEILING_CASES
 from invglare.errors import ConfigError
@@ -158,6 +158,22 @@ def _meta() -> dict[str, Any]:
     }
 
 
+def _jobs(cases: list[Case], sizes: list[int]) -> list[tuple[tuple[Case, ...], int]]:
+    """What to time, size by size: each case alone, except a torch layer and its JAX twin
+    (:data:`~invglare.bench.torch_cases.PAIRS`), timed together with their calls
+    alternating, since their difference is the result."""
+    by_name = {c.name: c for c in cases}
+    twins = {PAIRS[c.name] for c in cases if c.name in PAIRS and PAIRS[c.name] in by_name}
+    jobs = []
+    for n in sizes:
+        for case in cases:
+            if case.name in twins:
+                continue
+            twin = by_name.get(PAIRS.get(case.name, ""))
+            jobs.append(((case, twin) if twin is not None else (case,), n))
+    return jobs
+
+
 def run_bench(
     patterns: list[str],
     out_dir: Path,
@@ -216,40 +232,47 @@ def run_bench(
     def save_partial() -> None:
         write_json_atomic(partial, {"meta": meta, "records": records, "fit": fit_records})
 
-    jobs = [(case, n) for n in sizes for case in cases]
-    for case, n in tqdm(jobs, desc="bench", unit="case", disable=None):
+    jobs = _jobs(cases, sizes)
+    for job, n in tqdm(jobs, desc="bench", unit="case", disable=None):
+        fns: list = []
         try:
-            fn = case.make(n)
-            if fn is None:
-                log.info("skipping %s: not installed here", case.name)
-                if case.name not in not_installed:
-                    not_installed.append(case.name)
+            for case in job:
+                fn = case.make(n)
+                if fn is None:
+                    log.info("skipping %s: not installed here", case.name)
+                    if case.name not in not_installed:
+                        not_installed.append(case.name)
+                    break
+                fns.append(fn)
+            if len(fns) < len(job):
                 continue
             # Fewer repeats at large sizes keep the whole run to minutes.
             reps = max(3, repeats // max(1, (n // 512) ** 2))
-            timing = measure(fn, reps, budget_s=budget_s)
+            timings = measure_together(tuple(fns), reps, budget_s=budget_s)
         except Exception as err:  # one broken case must not lose the others' results
-            log.error("bench case %s at N=%d failed:\n%s", case.name, n, traceback.format_exc())
-            failed.append(f"{case.name} (N={n}): {type(err).__name__}: {err}")
+            names = " + ".join(c.name for c in job)
+            log.error("bench case %s at N=%d failed:\n%s", names, n, traceback.format_exc())
+            failed.append(f"{names} (N={n}): {type(err).__name__}: {err}")
             continue
         finally:
-            fn = None
+            fns = []
             release_programs()
-        records.append(
-            {
-                "case": case.name,
-                "kind": case.kind,
-                "size": n,
-                "median_ms": round(timing.median_ms, 4),
-                "min_ms": round(timing.min_ms, 4),
-                "repeats": timing.repeats,
-                "first_call_s": round(timing.first_call_s, 4),
-                "cpu_per_wall": round(timing.cpu_per_wall, 2),
-                "load_1m": load_1m(),
-                "description": case.description,
-                "forward": case.forward,
-            }
-        )
+        for case, timing in zip(job, timings, strict=True):
+            records.append(
+                {
+                    "case": case.name,
+                    "kind": case.kind,
+                    "size": n,
+                    "median_ms": round(timing.median_ms, 4),
+                    "min_ms": round(timing.min_ms, 4),
+                    "repeats": timing.repeats,
+                    "first_call_s": round(timing.first_call_s, 4),
+                    "cpu_per_wall": round(timing.cpu_per_wall, 2),
+                    "load_1m": load_1m(),
+                    "description": case.description,
+                    "forward": case.forward,
+                }
+            )
         save_partial()
     _add_ratios(records)
 

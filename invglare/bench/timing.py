@@ -60,37 +60,48 @@ def measure(
     - `budget_s`: stop timing once this many seconds of repeats are spent (after at
       least `min_repeats` calls); None for no limit.
     """
-    start = time.perf_counter()
-    _block(fn())
-    first = time.perf_counter() - start
-    if first < 1.0:
-        _block(fn())
-    times: list[float] = []
-    cpu0, wall0 = time.process_time(), time.perf_counter()
-    for i in range(max(repeats, 1)):
-        if budget_s is not None and i >= min_repeats and sum(times) / 1e3 > budget_s:
-            break
-        t0 = time.perf_counter()
-        _block(fn())
-        times.append((time.perf_counter() - t0) * 1e3)
-    wall = time.perf_counter() - wall0
-    cpu = time.process_time() - cpu0
-    return Timing(
-        median_ms=statistics.median(times),
-        min_ms=min(times),
-        first_call_s=first,
-        repeats=len(times),
-        cpu_per_wall=cpu / wall if wall > 0 else float("nan"),
-    )
+    return measure_together((fn,), repeats, budget_s, min_repeats)[0]
 
 
-def time_ms(fn: Callable[[], object], repeats: int, warmup: int = 2) -> tuple[float, float]:
-    """Median and minimum wall time of ``fn()`` in ms, after `warmup` untimed calls."""
-    for _ in range(warmup):
-        _block(fn())
-    times = []
-    for _ in range(repeats):
+def measure_together(
+    fns: tuple[Callable[[], object], ...],
+    repeats: int,
+    budget_s: float | None = None,
+    min_repeats: int = 3,
+) -> list[Timing]:
+    """:func:`measure` of callables whose times are compared, their calls alternating.
+
+    Each repeat calls every function once in turn, so a drift of the machine's load
+    falls on all of them alike (a torch layer and its JAX twin: their difference is
+    the measurement). `budget_s` counts the repeats of all of them; `cpu_per_wall` is
+    the whole loop's.
+    """
+    firsts = []
+    for fn in fns:
         start = time.perf_counter()
         _block(fn())
-        times.append((time.perf_counter() - start) * 1e3)
-    return statistics.median(times), min(times)
+        firsts.append(time.perf_counter() - start)
+        if firsts[-1] < 1.0:
+            _block(fn())
+    times: list[list[float]] = [[] for _ in fns]
+    cpu0, wall0 = time.process_time(), time.perf_counter()
+    for i in range(max(repeats, 1)):
+        spent = sum(sum(t) for t in times) / 1e3
+        if budget_s is not None and i >= min_repeats and spent > budget_s:
+            break
+        for fn, own in zip(fns, times, strict=True):
+            t0 = time.perf_counter()
+            _block(fn())
+            own.append((time.perf_counter() - t0) * 1e3)
+    wall = time.perf_counter() - wall0
+    cpu = time.process_time() - cpu0
+    return [
+        Timing(
+            median_ms=statistics.median(own),
+            min_ms=min(own),
+            first_call_s=first,
+            repeats=len(own),
+            cpu_per_wall=cpu / wall if wall > 0 else float("nan"),
+        )
+        for own, first in zip(times, firsts, strict=True)
+    ]

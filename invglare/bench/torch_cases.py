@@ -30,15 +30,12 @@ from __future__ import annotations
 
 import argparse
 import os
-import statistics
 import sys
-import time
-from collections.abc import Callable
 
 import numpy as np
 
 from invglare.bench.cases import Case, _disk_model
-from invglare.bench.timing import _block, load_1m
+from invglare.bench.timing import load_1m, measure_together
 
 #: The free parameter of the bench layers, with bounds that stay inside the raster window.
 _FREE = [{"path": "aperture.shapes[0].diameter_mm", "lower": 3.0, "upper": 4.1}]
@@ -298,7 +295,8 @@ def overhead_markdown(records: list[dict]) -> list[str]:
         lines += [
             "## PyTorch layers against the same JAX calls" if not lines else "",
             "",
-            f"{stat.split('_')[0].capitalize()} times. Goal: torch <= "
+            f"{stat.split('_')[0].capitalize()} times, each torch case timed together with "
+            "its twin, their calls alternating. Goal: torch <= "
             f"{1 + GOAL_RELATIVE:g} x JAX + {GOAL_ABSOLUTE_MS:g} ms.",
             "",
             "| case | N | torch ms | JAX ms | ratio | excess ms | goal |",
@@ -311,29 +309,6 @@ def overhead_markdown(records: list[dict]) -> list[str]:
                 f"{'met' if r['goal_met'] else 'missed'} |"
             )
     return lines
-
-
-def paired_timing(
-    a: Callable[[], object], b: Callable[[], object], repeats: int, warmup: int = 3
-) -> tuple[dict[str, float], dict[str, float]]:
-    """``{"median_ms", "min_ms"}`` of `a` and of `b`, timed in alternation (load drifts hit
-    both alike). On a loaded machine the minimum is the better estimate of the work itself."""
-    for _ in range(warmup):
-        _block(a())
-        _block(b())
-    ta, tb = [], []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        _block(a())
-        t1 = time.perf_counter()
-        _block(b())
-        t2 = time.perf_counter()
-        ta.append((t1 - t0) * 1e3)
-        tb.append((t2 - t1) * 1e3)
-    return (
-        {"median_ms": statistics.median(ta), "min_ms": min(ta)},
-        {"median_ms": statistics.median(tb), "min_ms": min(tb)},
-    )
 
 
 def main(argv: list[str] | None = None) -> list[dict]:
@@ -351,8 +326,11 @@ def main(argv: list[str] | None = None) -> list[dict]:
             if a is None or b is None:
                 print(f"skipping {case}: torch is not installed")
                 continue
-            torch_t, jax_t = paired_timing(a, b, args.repeats)
-            records += [{"case": case, "size": n, **torch_t}, {"case": twin, "size": n, **jax_t}]
+            timings = measure_together((a, b), args.repeats)
+            records += [
+                {"case": name, "size": n, "median_ms": t.median_ms, "min_ms": t.min_ms}
+                for name, t in zip((case, twin), timings, strict=True)
+            ]
     print(f"load average (1 min): {load_1m()}")
     print("\n".join(overhead_markdown(records)))
     return overhead_rows(records)

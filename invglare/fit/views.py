@@ -467,7 +467,16 @@ def whitened(
 
 class _StatisticView(AbstractView):
     """A statistics view: its :meth:`raw` residual, whitened by the scatter between eyes (the
-    :data:`SCATTER_FIELDS`, which each view declares after its own fields, in that order)."""
+    :data:`SCATTER_FIELDS`, keyword-only, so that each view's own fields keep their places)."""
+
+    draws: int = eqx.field(static=True, default=0, kw_only=True)
+    model_draws: int = eqx.field(static=True, default=1, kw_only=True)
+    offset: Float[Array, " n"] | None = eqx.field(
+        converter=_optional_array, default=None, kw_only=True
+    )
+    whiten: Float[Array, "n n"] | None = eqx.field(
+        converter=_optional_array, default=None, kw_only=True
+    )
 
     def __call__(self, ctx):
         return whitened(self.raw(ctx), self.offset, self.whiten)
@@ -489,10 +498,6 @@ class RadialView(_StatisticView):
     n_bins: int = eqx.field(static=True)
     max_radius_px: float = eqx.field(static=True)
     floor: Float[Array, ""] = eqx.field(converter=as_float)  # a leaf, as PixelView's
-    draws: int = eqx.field(static=True, default=0)
-    model_draws: int = eqx.field(static=True, default=1)
-    offset: Float[Array, " n"] | None = eqx.field(converter=_optional_array, default=None)
-    whiten: Float[Array, "n n"] | None = eqx.field(converter=_optional_array, default=None)
 
     def raw(self, ctx):
         pt = radial_profile(ctx.target, ctx.centre, self.n_bins, self.max_radius_px)
@@ -517,10 +522,6 @@ class AngularView(_StatisticView):
     n_bins: int = eqx.field(static=True)
     r_min: float = eqx.field(static=True)
     r_max: float = eqx.field(static=True)
-    draws: int = eqx.field(static=True, default=0)
-    model_draws: int = eqx.field(static=True, default=1)
-    offset: Float[Array, " n"] | None = eqx.field(converter=_optional_array, default=None)
-    whiten: Float[Array, "n n"] | None = eqx.field(converter=_optional_array, default=None)
 
     def raw(self, ctx):
         bg = ctx.obs.response * ctx.obs.background
@@ -541,10 +542,6 @@ class HaloView(_StatisticView):
     r_core: float = eqx.field(static=True)
     r_max: float = eqx.field(static=True)
     power: float = eqx.field(static=True, default=2.0)
-    draws: int = eqx.field(static=True, default=0)
-    model_draws: int = eqx.field(static=True, default=1)
-    offset: Float[Array, " n"] | None = eqx.field(converter=_optional_array, default=None)
-    whiten: Float[Array, "n n"] | None = eqx.field(converter=_optional_array, default=None)
 
     def raw(self, ctx):
         bg = ctx.obs.response * ctx.obs.background

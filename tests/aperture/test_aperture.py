@@ -565,6 +565,7 @@ def _test_aperture():
     )
 
 
+@pytest.mark.slow
 def test_jit_equals_eager():
     """float32: atol 5e-5 (XLA fuses and reorders; 1 ulp of a 1.5 mm coordinate moves the
     coverage by ~3e-6 at this pitch; measured 1.1e-5). float64: atol 1e-12."""

@@ -308,6 +308,7 @@ def test_every_float_leaf_has_a_gradient_case():
 # ------------------------------------------------------------------------------ transformations
 
 
+@pytest.mark.slow
 def test_jit_equals_eager_and_vmap_equals_loop():
     camera = CameraAperture(
         Diaphragm(7, 5.6, 35.0, rotation_deg=3.0, rounding=0.2),

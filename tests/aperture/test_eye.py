@@ -213,6 +213,7 @@ def test_relaxed_weights_exact_at_integers():
     assert w[3] == pytest.approx(0.25**2 * (3 - 0.5)) and w[4] == 0.0
 
 
+@pytest.mark.slow
 def test_integer_count_is_the_smaller_pool():
     """count = k in a pool of n_max equals a pool of exactly k elements (weights 1)."""
     grid = _grid()
@@ -427,6 +428,7 @@ def _with_leaf(eye, n: int, index: int | None, x):
 _FD_STEP = {"upper_lashes.length_mm": 5e-6}
 
 
+@pytest.mark.slow
 def test_every_float_leaf_gradient_converges_to_finite_differences_float64():
     """d/dx sum(weights * transmission) by autodiff for every float parameter of the eye
     (pupil, lids, upper lashes, particles, gratings: 30 in all) against central
@@ -470,6 +472,7 @@ def test_every_float_leaf_gradient_converges_to_finite_differences_float64():
 # transformations
 
 
+@pytest.mark.slow
 def test_jit_equals_eager_and_needs_fixed_windows():
     grid = _grid()
     eye = _small_eye()
@@ -483,6 +486,7 @@ def test_jit_equals_eager_and_needs_fixed_windows():
         eqx.filter_jit(lambda e: e.transmission(grid))(eye)
 
 
+@pytest.mark.slow
 def test_vmap_over_pupil_diameters_equals_loop():
     grid = _grid()
     eye = _small_eye()
@@ -682,6 +686,7 @@ def test_grating_patches_fill_their_annulus_uniformly_in_area():
     assert abs(np.mean(rho < half) - 0.5) < 0.08
 
 
+@pytest.mark.slow
 def test_stamp_windows_also_hold_the_largest_of_other_values():
     """`also=`: windows sized for the largest element over several parameter values.
 

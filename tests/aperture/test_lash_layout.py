@@ -134,6 +134,7 @@ _STEP = {"length_mm": 2e-5}
 
 
 @pytest.mark.parametrize("leaf", LAYOUT_LEAVES)
+@pytest.mark.slow
 def test_every_layout_leaf_gradient_converges_to_finite_differences_float64(leaf):
     """d/dx sum(w * transmission) of lash 2's and lash 3's per-lash values (both cross the
     pupil) by autodiff against central differences at two steps (1e-4 and 2.5e-5 of the

@@ -31,7 +31,7 @@ from invglare.bench.runner import (
 )
 from invglare.bench.sample import SAMPLE_CASES
 from invglare.bench.temporal_cases import STAGES, stage_markdown
-from invglare.bench.timing import measure
+from invglare.bench.timing import measure, measure_together
 from invglare.bench.unknown_draw import UNKNOWN_DRAW_CASES
 from invglare.cli import app
 from invglare.errors import ConfigError
@@ -72,6 +72,7 @@ OPTIONAL_LIBRARIES = (("fft_floor_pyfftw", "pyfftw"), ("torch_", "torch"))
         if c.name not in HEAVY_GRADS + SIZE_FREE and not c.name.startswith("temporal_stage_")
     ],
 )
+@pytest.mark.slow
 def test_every_case_builds_and_runs_at_a_tiny_size_with_finite_output(case):
     fn = case.make(TINY)
     if fn is None:
@@ -113,6 +114,7 @@ def _rec(case, size, ms, kind="pipeline", forward=None):
     return {"case": case, "kind": kind, "size": size, "median_ms": ms, "forward": forward}
 
 
+@pytest.mark.slow
 def test_temporal_stages_chain_to_the_frame_and_are_tabulated_with_their_shares():
     """The stage cases are the frame's pieces: chained, they give its display values."""
     by_name = {c.name: c for c in CASES}
@@ -222,6 +224,7 @@ def test_run_bench_writes_json_and_markdown_with_ratios_from_the_records(tmp_pat
     assert "Not installed for this run: `fft_floor_pyfftw`" in redrawn
 
 
+@pytest.mark.slow
 def test_run_bench_releases_each_case_s_compiled_programs(tmp_path):
     """XLA's CPU code takes memory maps per compiled function; kept for a whole run they
     passed the kernel's 65 530 maps per process and crashed it. Here 5 programs (3 cases,
@@ -286,6 +289,32 @@ def test_measure_stops_at_the_budget_after_the_minimum_repeats():
     assert timing.first_call_s > 0 and math.isfinite(timing.cpu_per_wall)
 
 
+def test_measure_together_alternates_the_calls_and_times_each_apart():
+    calls = []
+
+    def slow():
+        calls.append("slow")
+        time.sleep(0.004)
+
+    def quick():
+        calls.append("quick")
+
+    slow_t, quick_t = measure_together((slow, quick), repeats=6)
+    # Two warm-up calls each (both are quick to compile), then the pairs in turn.
+    assert calls == ["slow"] * 2 + ["quick"] * 2 + ["slow", "quick"] * 6
+    assert slow_t.repeats == quick_t.repeats == 6
+    assert slow_t.min_ms >= 4.0 > quick_t.median_ms
+
+
+def test_torch_cases_are_timed_with_their_twins_and_alone_without_them():
+    by_name = {c.name: c for c in runner.CASES}
+    torch_psf, twin = by_name["torch_psf"], by_name["torch_psf_jax"]
+    jobs = runner._jobs([CASES[0], torch_psf, twin], [32, 64])
+    assert jobs == [((CASES[0],), 32), ((torch_psf, twin), 32),
+                    ((CASES[0],), 64), ((torch_psf, twin), 64)]  # fmt: skip
+    assert runner._jobs([torch_psf], [32]) == [((torch_psf,), 32)]
+
+
 def test_cli_bench_rejects_bad_sizes_and_unknown_cases(tmp_path):
     cli = CliRunner()
     result = cli.invoke(app, ["bench", "psf_mono", "--sizes", "32,abc", "--out-dir", tmp_path])
@@ -316,6 +345,7 @@ def test_a_failing_case_is_reported_after_the_others_are_written(tmp_path, monke
 DISK = "model.aperture.shapes[0].diameter_mm"
 
 
+@pytest.mark.slow
 def test_fit_benchmark_plumbing_on_a_small_disk(tmp_path):
     """The whole fit benchmark (both solvers, both dtypes, the report) on a disk pupil.
 
@@ -383,6 +413,7 @@ def _fit_cli_helpers():
     return module.invoke, module.make_problem, module.write_fit
 
 
+@pytest.mark.slow
 def test_sample_benchmark_times_batched_and_per_walker_steps_of_a_fit(tmp_path):
     """A small disk fit, then emcee steps of its posterior in every mode; with a committed
     chain's tau, the effective samples per second follow from the step time."""

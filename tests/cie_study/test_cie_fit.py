@@ -47,6 +47,7 @@ TINY = CieFitSetup(
 TRUTH = {"aperture.particles[0].count": 100.4, "aperture.particles[0].radius_mean_mm": 0.062}
 
 
+@pytest.mark.slow
 def test_fit_recovers_a_synthetic_eye():
     with jax.enable_x64(True):
         model, space = build_fit_model(TINY)

@@ -155,6 +155,7 @@ def test_psf_fresnel_example_runs_on_fft_path(tmp_path):
 
 
 @pytest.mark.parametrize("name", ["eye_daylight", "camera_cross_screen"])
+@pytest.mark.slow
 def test_psf_and_render_take_the_eye_and_camera_configs(tmp_path, name):
     """The Kakimoto models from the CLI: a PSF with its config in the header, then a scene
     convolved with it (light moved around, not created: the frame keeps the light the PSF

@@ -4,6 +4,7 @@ import re
 import struct
 from pathlib import Path
 
+import pytest
 from typer.testing import CliRunner
 
 from invglare.cli import app
@@ -73,6 +74,7 @@ def png_size(path: Path) -> tuple[int, int]:
     return struct.unpack(">II", data[16:24])
 
 
+@pytest.mark.slow
 def test_gallery_writes_a_page_with_one_png_row_per_model(tmp_path):
     eye, camera = tmp_path / "tiny_eye.toml", tmp_path / "tiny_camera.toml"
     eye.write_text(EYE)

@@ -109,6 +109,7 @@ def test_residual_functions_of_two_photos_share_their_static_part(photos):
     assert float(fn1.views[1].floor) != float(fn2.views[1].floor)  # photo-specific, as leaves
 
 
+@pytest.mark.slow
 def test_second_photo_reuses_the_compiled_solve_and_its_answer_is_unchanged(photos):
     """A second photo of the same structure compiles nothing; its result is the one a
     fresh process would get (the solve does not read the space's inits)."""
@@ -121,6 +122,7 @@ def test_second_photo_reuses_the_compiled_solve_and_its_answer_is_unchanged(phot
     assert abs(second.values[SIGMA] - 2.6) < 0.05
 
 
+@pytest.mark.slow
 def test_fit_many_gives_each_photo_its_own_fit(photos):
     """Three photos in one vmapped solve per stage, vmapped starts and looped starts, equal
     their separate fits to 1e-8 relative (measured: 1e-11 at most). The step counts may
@@ -147,6 +149,7 @@ def test_fit_many_gives_each_photo_its_own_fit(photos):
 
 
 @pytest.mark.parametrize("branch", [(), ((SIGMA, (0, 1)),)], ids=["one", "branched"])
+@pytest.mark.slow
 def test_fit_staged_many_equals_fit_staged_with_a_scan_and_a_held_stage(photos, branch):
     stage = Stage({"radial": 1.0}, 30, ("obs.dx_px",), branch)
     alone, per_photo = [], []

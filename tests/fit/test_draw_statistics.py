@@ -58,6 +58,7 @@ def _space(count_init: float = 14.4) -> ParameterSpace:
     )
 
 
+@pytest.mark.slow
 def test_redraw_draws_another_eye_with_the_same_parameters():
     """Each random key is replaced (lashes and cells differ), nothing else; a lash layout
     has no key and stays."""

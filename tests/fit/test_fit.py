@@ -480,6 +480,7 @@ def assert_converges_to(column, f, z, i, name, steps=(1e-3, 1e-4), rtol=1e-6, fl
     return errors
 
 
+@pytest.mark.slow
 def test_residual_gradient_matches_finite_differences_with_nuisances(disk_problem):
     """d residuals / d latent: jacfwd vs central differences in float64, converging over two
     steps (1e-3, 1e-4 in latent units) to 1e-6 of each column's norm.
@@ -530,6 +531,7 @@ def test_residual_gradient_matches_finite_differences_with_nuisances(disk_proble
 # recovery
 
 
+@pytest.mark.slow
 def test_disk_diameter_recovered_within_2pc_from_3_starts(disk_problem):
     space, template, target = disk_problem
     res = fit(space, template, target, {"pixels": 1.0}, n_starts=3, key=jax.random.key(0))
@@ -579,6 +581,7 @@ def test_hexagon_rotation_recovered_within_half_degree_by_angular_view():
     assert abs(res.values[ROTATION] - 12.0) < 0.5
 
 
+@pytest.mark.slow
 def test_coarse_to_fine_refines_best_coarse_starts():
     """Stage 1 on 4x4 block sums from 3 starts, stage 2 at full resolution from the best 2."""
     space, template, target = toy_problem()
@@ -791,6 +794,7 @@ def _daylight_eye_forward(npix: int = 64) -> Forward:
     return Forward(build_model(config), obs)
 
 
+@pytest.mark.slow
 def test_fit_sizes_stamp_windows_by_the_bounds_and_changes_no_residual_1e12():
     """A fit's eye gets the smallest stamp windows its free parameters' bounds allow.
 

@@ -186,6 +186,7 @@ def test_the_first_line_names_every_stages_views():
     assert views_in_order([], {"pixels": 1.0, "log": 0.5}) == "pixels, log"
 
 
+@pytest.mark.slow
 def test_fit_report_files_and_recovery_with_clipped_core(disk_report):
     """Clipped core (survival-censored), 3 starts across [2, 5] mm: diameter within 0.5 %."""
     out, params, text = disk_report
@@ -256,6 +257,7 @@ RATIO = "obs.pixel_scale_ratio"
     [(RATIO, 0.0042, 0.03), (RATIO, 0.0028, 0.03), (SCALE, 0.0042, 0.002)],
     ids=["ratio+20%", "ratio-20%", "exact+20%"],
 )
+@pytest.mark.slow
 def test_wrong_pixel_scale_is_recovered_when_free(disk, path, scale, tol):
     """The model is built at a pixel scale 20 % off the photo's (0.0035 deg/px) and the fit
     starts there (a nuisance: every start): it converges to the photo's scale.

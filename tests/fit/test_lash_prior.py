@@ -45,6 +45,7 @@ def _angles(fwd) -> np.ndarray:
     return np.asarray(fwd.model.aperture.upper_lashes.layout.angle_deg)
 
 
+@pytest.mark.slow
 def test_free_layout_leaves_carry_the_prior_in_the_residuals_and_the_posterior():
     """Freeing angle_deg[3..5] adds 3 standardised deviations and the normalisation to the
     residuals; their sum of squares is -2 log prior up to the constants, and the sampler's

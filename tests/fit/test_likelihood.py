@@ -121,6 +121,7 @@ def test_likelihood_peak_and_the_residual_identity(o):
     np.testing.assert_allclose(half, -score, rtol=1e-8, atol=1e-14)
 
 
+@pytest.mark.slow
 def test_half_sum_of_squares_is_the_samplers_negative_log_likelihood():
     """For the whole photo, clipped core included: ``sum(r**2) / 2 + log L`` is the same at
     three parameter points (a constant of the data), and its gradient in every free
@@ -232,6 +233,7 @@ def test_monte_carlo_bias_below_0_1_stderr_and_coverage(monte_carlo):
         assert 0.92 <= c95 <= 0.98, (path, c95)
 
 
+@pytest.mark.slow
 def test_fit_ends_at_the_samplers_optimum(tmp_path):
     """`fit` on a photo of another seed: the sampler's log-probability at the result is
     within d/2 + 3 of the best of a short chain started there (d = 5; measured gap below
@@ -344,6 +346,7 @@ def test_wrong_noise_model_and_misfit_are_flagged_in_a_fit():
     assert flag["cause"] == "model_misfit", flag
 
 
+@pytest.mark.slow
 def test_stalled_fit_is_flagged_and_the_report_leads_with_the_flags(tmp_path):
     """Two solver steps from a poor start: not at the optimum (the check's scoring steps gain
     far more than d/2), and the truth is many standard errors away; `params.json` carries

@@ -108,6 +108,7 @@ def test_ghost_section_errors_follow_a_known_shift():
     assert "truth" not in data and "true intensity" not in lines[2]
 
 
+@pytest.mark.slow
 def test_fit_command_recovers_each_ghost_of_a_synthetic_veiling_frame(tmp_path):
     """`invglare synth` then `invglare fit` on a 56x40 veiling frame (not square)."""
     (tmp_path / "ghosts.toml").write_text(GHOSTS)

@@ -476,6 +476,7 @@ def test_grad_through_render_with_fixed_phases(small):
     assert bool(jnp.isfinite(g)) and float(g) > 0  # a wider pupil sharpens the peak
 
 
+@pytest.mark.slow
 def test_cropped_stack_equals_the_full_grid():
     # The layers on the central m x m samples (with the taper) give the full grid's PSF: the
     # pupil's light never crosses the crop's margin. Lashes and tear film in front, on and

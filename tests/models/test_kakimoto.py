@@ -526,6 +526,7 @@ def test_cornea_cells_scatter_beyond_the_rasters_field():
         _wide(eye, "none")
 
 
+@pytest.mark.slow
 def test_gradient_of_the_wide_angle_veil_in_particle_size_and_count():
     with x64():
         model = _wide(_cornea_eye())
@@ -599,6 +600,7 @@ def test_a_bitmap_obstacle_at_a_distance_matches_the_same_obstacle_drawn_procedu
     assert np.abs(np.asarray(b((4.0, -2.0))) - np.asarray(b((0.0, 0.0)))).sum() > 0.1
 
 
+@pytest.mark.slow
 def test_bitmap_placement_gradients_and_config_round_trip(tmp_path):
     from invglare.aperture.eye import EyeAperture, Pupil
     from invglare.config.model import build_model

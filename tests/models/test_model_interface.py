@@ -228,6 +228,7 @@ def _close(a, b, what: str) -> None:
 
 
 @pytest.mark.parametrize("name", list(KINDS))
+@pytest.mark.slow
 def test_model_kind_works_under_jit_vmap_and_grad_and_round_trips(name):
     kind = KINDS[name]
     model = build_model(copy.deepcopy(kind.config))
@@ -287,6 +288,7 @@ def test_model_kind_works_under_jit_vmap_and_grad_and_round_trips(name):
 
 
 @pytest.mark.parametrize("name", list(KINDS))
+@pytest.mark.slow
 def test_gradient_of_one_float_leaf_matches_central_differences_in_float64(name):
     kind = KINDS[name]
     with x64():

@@ -35,6 +35,7 @@ def test_progressive_frames_of_the_temporal_eye():
     assert closed and all(np.all(psfs[k] == 0) for k in closed)
 
 
+@pytest.mark.slow
 def test_progressive_mono_frames_equal_fresh_quad_evaluations():
     """Pupil only, monochrome: each progressive frame is its aperture's quad near field at
     the model's effective Fresnel distance; at the retina's 17 mm float32 is refused."""

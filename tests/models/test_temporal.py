@@ -177,6 +177,7 @@ def expected_luminance_sum(model: TemporalGlare, state) -> float:
     return float(weights_y @ np.asarray(kept))
 
 
+@pytest.mark.slow
 def test_sequence_is_one_scan_equal_to_frame_by_frame_and_moves(model, sequence):
     states, last, psfs = sequence
     assert psfs.shape == (4, NPIX, NPIX, 3)
@@ -437,6 +438,7 @@ MEASURED_SCALED_COPY_ERRORS = {
 ERROR_MARGIN = 1.06
 
 
+@pytest.mark.slow
 def test_scaled_copies_against_exact_per_wavelength_fresnel_psfs(model, record_property):
     """The paper's chromatic blur (one E at 575 nm, copies scaled by lambda / 575) against
     the exact sum of per-wavelength Fresnel PSFs (E and the transform at each wavelength).

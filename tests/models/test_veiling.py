@@ -569,6 +569,7 @@ def test_circle_overlap_area():
         assert np.isfinite(float(g)) and float(g) < 0
 
 
+@pytest.mark.slow
 def test_lens_ghost_gradients_match_finite_differences():
     """d image / d (light angle, coating and sensor reflectance, curvature, spacing)."""
     with x64():
@@ -720,6 +721,7 @@ def _brute_force_vgi(model, spot_deg, field_deg):
     return veiled / (float(model.direct_fraction(jnp.zeros(2))) + total)
 
 
+@pytest.mark.slow
 def test_direction_resolved_vgi_matches_a_brute_force_sum_over_light_directions():
     """Issue 27 (9): ISO 9358's index from every light direction, against model.batch.
 

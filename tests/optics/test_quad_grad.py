@@ -25,6 +25,7 @@ def _weights(n=NPIX, seed=0):
     return jnp.asarray(np.random.default_rng(seed).random((n, n)))
 
 
+@pytest.mark.slow
 def test_gradient_through_quad_intensities():
     """d loss / d(pixel value) for a fractional edge pixel (its own quad), an interior pixel
     (sharing the open value's intensity) and through the near field: autodiff equals
@@ -52,6 +53,7 @@ def test_gradient_through_quad_intensities():
 
 
 @pytest.mark.parametrize("method", ["quad", "polygon"])
+@pytest.mark.slow
 def test_gradient_through_shape_parameters(method):
     """A heptagon's rotation (3 deg, off its symmetry) and diameter, through the quad
     propagator (edges move within its band of 2 px) and the polygon propagator (no raster):
@@ -96,6 +98,7 @@ def test_gradient_through_polygon_vertices():
             assert_grad_converges(loss, float(v[k, axis]), 1e-5)
 
 
+@pytest.mark.slow
 def test_gradient_of_a_lash_angle_on_the_polygon_path():
     """A capsule (a lash) across a disk pupil: the part outside the pupil is the overlap
     residue's quads; the lash's end moves a fraction of a pixel, inside the band."""

@@ -39,6 +39,7 @@ def _build(method, aperture=HEPTAGON, **kwargs):
     return AperturePSF.build(aperture, method=method, **args)
 
 
+@pytest.mark.slow
 def test_quad_model_equals_the_mft_model_times_the_pixel_transfer_under_jit_and_vmap():
     mft, quad = _build("mft"), _build("quad")
     assert isinstance(quad.propagator, QuadFraunhofer) and quad.propagator.plan is not None
@@ -300,6 +301,7 @@ def test_mft_refuses_what_quad_computes_at_the_same_raster():
     assert 0.98 * whole < band < wide <= whole
 
 
+@pytest.mark.slow
 def test_a_culled_propagator_holds_its_tiles_as_plain_integers():
     """Culling kept tiles (a box, 128 px to 512): they sit in a static field, as Python
     ints: numpy or JAX scalars there are arrays to equinox, which warned on every build."""

@@ -339,6 +339,7 @@ def test_lattice_table_gradients_are_the_whole_tables():
 # ------------------------------------------------------------------------------ culling
 
 
+@pytest.mark.slow
 def test_culling_is_skipped_where_its_runs_would_cover_most_of_the_quadrant():
     """The culled evaluation computes the kept tiles' runs (gaps bridged), not the tiles:
     a heptagon whose 63 % kept tiles span 93 % of the quadrant and a box whose 27 % span

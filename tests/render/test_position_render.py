@@ -73,6 +73,7 @@ def test_light_angles_follow_the_sampling_convention():
     )
 
 
+@pytest.mark.slow
 def test_each_light_gets_the_psf_of_its_own_direction():
     """The bank equals one model call per light, resampled (rel 1e-5); the lashes make
     the PSFs of different lights differ, and the render is the billboards of that bank."""

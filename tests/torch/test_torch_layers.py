@@ -73,6 +73,7 @@ def test_gradcheck_convolution_wrt_images_and_parameters():
     assert torch.autograd.gradcheck(out, (latent, images.requires_grad_()))
 
 
+@pytest.mark.slow
 def test_gradcheck_billboards_wrt_images_and_parameters(position_glare):
     images = _two_lights(8, 8)
 
