@@ -236,15 +236,11 @@ def run_bench(
     for job, n in tqdm(jobs, desc="bench", unit="case", disable=None):
         fns: list = []
         try:
-            for case in job:
-                fn = case.make(n)
-                if fn is None:
-                    log.info("skipping %s: not installed here", case.name)
-                    if case.name not in not_installed:
-                        not_installed.append(case.name)
-                    break
-                fns.append(fn)
-            if len(fns) < len(job):
+            fns = [case.make(n) for case in job]
+            missing = [case.name for case, fn in zip(job, fns, strict=True) if fn is None]
+            if missing:
+                log.info("skipping %s: not installed here", " + ".join(missing))
+                not_installed += [name for name in missing if name not in not_installed]
                 continue
             # Fewer repeats at large sizes keep the whole run to minutes.
             reps = max(3, repeats // max(1, (n // 512) ** 2))
