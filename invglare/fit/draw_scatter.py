@@ -57,7 +57,7 @@ import numpy as np
 from jaxtyping import Array, Float
 
 from invglare.fit.redraw import random_keys, redraw
-from invglare.fit.views import ResidualFn
+from invglare.fit.views import ResidualFn, whitened
 
 #: Draws evaluated per compiled call (a vmap): bounds the memory of a batch of models.
 BATCH = 8
@@ -112,6 +112,31 @@ def _draw_batch(fn: ResidualFn, latent: Array, keys: Array) -> tuple[list, list]
     return jax.vmap(one)(keys)
 
 
+def _simulate(
+    fn: ResidualFn, latent: Array, n: int, seed: int
+) -> tuple[list[np.ndarray], list[np.ndarray]]:
+    """Each view's raw residual (before any scatter's whitening) against at least `n` other
+    eyes at `latent` (a whole number of batches), ``(draws, bins)`` per view: against
+    their noisy photos, and against their noiseless ones.
+
+    The raw statistics do not depend on a scatter measured before, so one compiled program
+    serves the measurement and :func:`scatter_covariance`, whose residuals are whitened by
+    it (the simulation of its own that it had took 23-33 s to compile in the bundled
+    other-draws fits).
+    """
+    n = BATCH * math.ceil(n / BATCH)
+    keys = jax.random.split(jax.random.key(seed), n)
+    bare = fn.unwhitened()
+    noisy: list[list[np.ndarray]] = [[] for _ in fn.views]
+    clean: list[list[np.ndarray]] = [[] for _ in fn.views]
+    for start in range(0, n, BATCH):
+        photo_r, clean_r = _draw_batch(bare, latent, keys[start : start + BATCH])
+        for v in range(len(fn.views)):
+            noisy[v].append(np.asarray(photo_r[v], dtype=np.float64))
+            clean[v].append(np.asarray(clean_r[v], dtype=np.float64))
+    return [np.concatenate(x) for x in noisy], [np.concatenate(x) for x in clean]
+
+
 def estimate_scatter(
     fn: ResidualFn, latent: Float[Array, " p"], draws: Mapping[str, int], seed: int = 0
 ) -> dict[str, tuple[np.ndarray, np.ndarray]]:
@@ -144,22 +169,12 @@ def estimate_scatter(
             "draws: the model has no random draws (no key), so there is no scatter between "
             "draws to estimate; remove the draws option"
         )
-    n = int(max(draws.values()))
-    n = BATCH * math.ceil(n / BATCH)
-    keys = jax.random.split(jax.random.key(seed), n)
-    noisy: list[list[np.ndarray]] = [[] for _ in names]
-    clean: list[list[np.ndarray]] = [[] for _ in names]
-    for start in range(0, n, BATCH):
-        photo_r, clean_r = _draw_batch(fn, latent, keys[start : start + BATCH])
-        for v in range(len(names)):
-            noisy[v].append(np.asarray(photo_r[v], dtype=np.float64))
-            clean[v].append(np.asarray(clean_r[v], dtype=np.float64))
+    noisy, clean = _simulate(fn, latent, int(max(draws.values())), seed)
     out = {}
     for v, name in enumerate(names):
         if name not in draws:
             continue
-        rp = np.concatenate(noisy[v])
-        rc = np.concatenate(clean[v])
+        rp, rc = noisy[v], clean[v]
         cov = _shrunk_covariance(rp) + _shrunk_covariance(rc) / rc.shape[0]
         out[name] = (rc.mean(axis=0), np.linalg.inv(np.linalg.cholesky(cov)))
     return out
@@ -185,27 +200,6 @@ def scatter_options(
     return options
 
 
-@eqx.filter_jit
-def _draw_residuals(fn: ResidualFn, latent: Array, keys: Array) -> tuple[Array, Array]:
-    """`fn`'s whole residual vector against `len(keys)` other eyes, noisy and noiseless."""
-    fwd = fn.forward_at(latent)
-
-    def one(key):
-        k_eye, k_noise = jax.random.split(key)
-        other = redraw(fwd, k_eye)
-        psf = other.psf()
-        out = []
-        for target in (other.obs.sample(k_noise, psf), other.obs.clip(other.obs.expected(psf))):
-            target = target.astype(fn.target.dtype)
-            swapped = dataclasses.replace(
-                fn, target=target, saturated=fwd.obs.saturated_mask(target)
-            )
-            out.append(swapped.exact_at_parts([latent[i] for i in range(latent.shape[0])]))
-        return out
-
-    return jax.vmap(one)(keys)
-
-
 def scatter_covariance(
     fn: ResidualFn, latent: Float[Array, " p"], n_draws: int, seed: int = 1
 ) -> np.ndarray:
@@ -223,19 +217,30 @@ def scatter_covariance(
 
     **Returns:** the ``(p, p)`` covariance of the latent values.
     """
-    from invglare.fit.solve import jacobian_columns
+    from invglare.fit.solve import _jacobian_and_residuals
 
-    jac, _ = eqx.filter_jit(jacobian_columns)(fn, latent)
+    jac, _ = _jacobian_and_residuals(fn, latent)
     jac = np.asarray(jac, dtype=np.float64)
-    n = BATCH * math.ceil(int(n_draws) / BATCH)
-    keys = jax.random.split(jax.random.key(seed), n)
-    noisy, clean = [], []
-    for start in range(0, n, BATCH):
-        rp, rc = _draw_residuals(fn, latent, keys[start : start + BATCH])
-        noisy.append(np.asarray(rp, dtype=np.float64))
-        clean.append(np.asarray(rc, dtype=np.float64))
+    noisy, clean = _simulate(fn, latent, int(n_draws), seed)
+    n = noisy[0].shape[0]
     gain = np.linalg.pinv(jac)  # (p, n_residuals)
-    moves = np.concatenate(noisy) @ gain.T
-    model_moves = np.concatenate(clean) @ gain.T
+    moves = _residual_vectors(fn, noisy, jac.shape[0]) @ gain.T
+    model_moves = _residual_vectors(fn, clean, jac.shape[0]) @ gain.T
     cov = np.atleast_2d(np.cov(moves, rowvar=False))
     return cov + np.atleast_2d(np.cov(model_moves, rowvar=False)) / n
+
+
+def _residual_vectors(fn: ResidualFn, raw: list[np.ndarray], size: int) -> np.ndarray:
+    """`fn`'s residual vectors, ``(draws, size)``, from each view's raw residuals.
+
+    Each view weighted and whitened as `fn` does it; the priors' residuals (a fitted lash
+    layout's, the last rows) depend on the parameters alone, the same for every eye, so
+    they are left at 0: they move no estimate.
+    """
+    parts = []
+    for view, weight, r in zip(fn.views, fn.weights, raw, strict=True):
+        if hasattr(view, "raw"):
+            r = np.asarray(jax.vmap(whitened, in_axes=(0, None, None))(r, view.offset, view.whiten))
+        parts.append(math.sqrt(weight) * r)
+    vectors = np.concatenate(parts, axis=1)
+    return np.pad(vectors, ((0, 0), (0, size - vectors.shape[1])))

@@ -753,6 +753,16 @@ class ResidualFn(eqx.Module):
             self, views=(view,), names=("pixels",), weights=(1.0,), trend_step=(), model_draws=1
         )
 
+    def unwhitened(self) -> ResidualFn:
+        """These residuals with no statistics view weighed by a measured scatter (`offset`
+        and `whiten` None): what a view's :meth:`~_StatisticView.raw` residual needs, as one
+        program structure whether or not a scatter has been measured yet."""
+        views = tuple(
+            dataclasses.replace(v, offset=None, whiten=None) if isinstance(v, _StatisticView) else v
+            for v in self.views
+        )
+        return dataclasses.replace(self, views=views)
+
     def information_form(self) -> ResidualFn:
         """The likelihood's pixel views in their scoring form (see :func:`pixel_residuals`):
         ``J^T J`` is then the Fisher information plus the other views' Gauss–Newton terms."""

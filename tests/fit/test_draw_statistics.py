@@ -155,6 +155,47 @@ def test_scatter_covariance_is_a_positive_covariance_of_the_free_parameters():
         assert np.all(np.linalg.eigvalsh(cov) > 0) and np.allclose(cov, cov.T)
 
 
+def test_whitened_residuals_reuse_the_measurements_programs():
+    """Residuals whitened by a measured scatter (those the scatter covariance simulates)
+    have the same raw statistics: measured again, they give the same offsets and whitening
+    and run the program the first measurement compiled, as does the scatter covariance (its
+    residual vectors assembled from the raw statistics as the fit assembles its own); its
+    gain and the fit's covariance share one compiled Jacobian (each of these programs took
+    tens of seconds to compile for a bundled eye)."""
+    from invglare.fit.draw_scatter import _draw_batch, _residual_vectors
+    from invglare.fit.solve import _information, _jacobian_and_residuals
+
+    with helpers.x64():
+        fwd = _forward()
+        space = _space()
+        z = space.initial_latent()
+        options = {"radial": {"n_bins": 12, "draws": 8}}
+        first = make_residual_fn(space, fwd, _photo(fwd), {"radial": 1.0}, view_options=options)
+        measured = scatter_options(first, z, options)
+        again = make_residual_fn(space, fwd, _photo(fwd), {"radial": 1.0},
+                                 view_options=measured)  # fmt: skip
+        assert again.views[0].whiten is not None
+        simulations = _draw_batch._cached._cache_size()
+        repeat = scatter_options(again, z, options)
+        assert _draw_batch._cached._cache_size() == simulations
+        for key in ("offset", "whiten"):
+            np.testing.assert_array_equal(repeat["radial"][key], measured["radial"][key])
+        compiled = _jacobian_and_residuals._cached._cache_size()
+        jac, _ = _information(again, z)
+        scatter_covariance(again, z, 8)
+        assert _jacobian_and_residuals._cached._cache_size() == compiled + 1
+        assert _draw_batch._cached._cache_size() == simulations
+        # Views weighted, one whitened and one not: assembled as the fit assembles them.
+        mixed_options = {"radial": measured["radial"], "angular": {"n_bins": 8}}
+        mixed = make_residual_fn(space, fwd, _photo(fwd, seed=3), {"radial": 2.0, "angular": 0.5},
+                                 view_options=mixed_options)  # fmt: skip
+        ctx = mixed.context(z)
+        raw = [np.asarray(v.raw(ctx))[None] for v in mixed.views]
+        own = np.asarray(mixed(z))
+        np.testing.assert_allclose(_residual_vectors(mixed, raw, own.size)[0], own, rtol=1e-12)
+        np.testing.assert_array_equal(jac, _jacobian_and_residuals(again, z)[0])
+
+
 def test_bad_draw_requests_are_refused():
     with helpers.x64():
         fwd = _forward()
