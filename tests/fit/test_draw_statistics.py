@@ -58,6 +58,19 @@ def _space(count_init: float = 14.4) -> ParameterSpace:
     )
 
 
+def _whitened_radial(draws: int):
+    """The eye's radial view whitened by the scatter of `draws` other eyes measured at the
+    start (call under x64): forward, space, start, the options asked for and measured, and
+    the whitened residual function."""
+    fwd, space = _forward(), _space()
+    z = space.initial_latent()
+    options = {"radial": {"n_bins": 12, "draws": draws}}
+    first = make_residual_fn(space, fwd, _photo(fwd), {"radial": 1.0}, view_options=options)
+    measured = scatter_options(first, z, options)
+    fn = make_residual_fn(space, fwd, _photo(fwd), {"radial": 1.0}, view_options=measured)
+    return fwd, space, z, options, measured, fn
+
+
 @pytest.mark.slow
 def test_redraw_draws_another_eye_with_the_same_parameters():
     """Each random key is replaced (lashes and cells differ), nothing else; a lash layout
@@ -142,14 +155,8 @@ def test_whitened_statistics_of_other_eyes_are_unit_normal():
 @pytest.mark.slow
 def test_scatter_covariance_is_a_positive_covariance_of_the_free_parameters():
     with helpers.x64():
-        fwd = _forward()
-        space = _space()
-        z = space.initial_latent()
-        options = {"radial": {"n_bins": 12, "draws": 16}}
-        fn = make_residual_fn(space, fwd, _photo(fwd), {"radial": 1.0}, view_options=options)
-        fn = make_residual_fn(
-            space, fwd, _photo(fwd), {"radial": 1.0}, view_options=scatter_options(fn, z, options)
-        )
+        setup = _whitened_radial(16)
+        z, fn = setup[2], setup[-1]
         cov = scatter_covariance(fn, z, 16)
         assert cov.shape == (4, 4)
         assert np.all(np.linalg.eigvalsh(cov) > 0) and np.allclose(cov, cov.T)
@@ -166,14 +173,7 @@ def test_whitened_residuals_reuse_the_measurements_programs():
     from invglare.fit.solve import _information, _jacobian_and_residuals
 
     with helpers.x64():
-        fwd = _forward()
-        space = _space()
-        z = space.initial_latent()
-        options = {"radial": {"n_bins": 12, "draws": 8}}
-        first = make_residual_fn(space, fwd, _photo(fwd), {"radial": 1.0}, view_options=options)
-        measured = scatter_options(first, z, options)
-        again = make_residual_fn(space, fwd, _photo(fwd), {"radial": 1.0},
-                                 view_options=measured)  # fmt: skip
+        fwd, space, z, options, measured, again = _whitened_radial(8)
         assert again.views[0].whiten is not None
         simulations = _draw_batch._cached._cache_size()
         repeat = scatter_options(again, z, options)
