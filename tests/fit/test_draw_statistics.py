@@ -155,8 +155,7 @@ def test_whitened_statistics_of_other_eyes_are_unit_normal():
 @pytest.mark.slow
 def test_scatter_covariance_is_a_positive_covariance_of_the_free_parameters():
     with helpers.x64():
-        setup = _whitened_radial(16)
-        z, fn = setup[2], setup[-1]
+        _fwd, _sp, z, _asked, _measured, fn = _whitened_radial(16)
         cov = scatter_covariance(fn, z, 16)
         assert cov.shape == (4, 4)
         assert np.all(np.linalg.eigvalsh(cov) > 0) and np.allclose(cov, cov.T)
