@@ -411,7 +411,10 @@ def fit(
     ] = None,
     n_starts: Annotated[int | None, typer.Option(help="Override solver.n_starts.")] = None,
     max_steps: Annotated[int | None, typer.Option(help="Override solver.max_steps.")] = None,
-    progress: Annotated[bool, typer.Option(help="Show a progress bar.")] = True,
+    progress: Annotated[
+        bool | None,
+        typer.Option(help="Show a progress bar (default: when stderr is a terminal)."),
+    ] = None,
 ) -> None:
     """Fit a glare model to a photo; write report.md, params.json and figures.
 

@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import contextlib
 import logging
+import sys
 import time
 import warnings
 from collections.abc import Iterator
@@ -121,9 +122,11 @@ def _fit(setup, forward, label: str, progress: bool, **kwargs):
     """`setup.fit(forward, ...)` with a progress bar, logged when done."""
     bar = _Progress(label, enabled=progress)
     try:
+        # Without a bar the solves carry no host callback, so JAX's persistent cache
+        # (`--cache-dir`) can keep them for the next run.
         result = setup.fit(
-            forward, progress=bar, scan_progress=_ScanBar(progress), stage_done=_log_stage,
-            **kwargs,
+            forward, progress=bar if progress else None, scan_progress=_ScanBar(progress),
+            stage_done=_log_stage, **kwargs,
         )  # fmt: skip
     finally:
         bar.close()
@@ -157,10 +160,17 @@ def run_fit(
     out_dir: Path | None = None,
     n_starts: int | None = None,
     max_steps: int | None = None,
-    progress: bool = True,
+    progress: bool | None = None,
 ) -> Path:
-    """Run the fit a config describes and write its report. **Returns:** the report folder."""
+    """Run the fit a config describes and write its report. **Returns:** the report folder.
+
+    `progress`: a progress bar; ``None``: when stderr is a terminal. (A bar is fed by host
+    callbacks from the solves, which keeps JAX from caching them on disk.)
+    """
     from invglare.commands import options
+
+    if progress is None:
+        progress = sys.stderr.isatty()
     from invglare.config.fit import is_reference_fit, load_fit
     from invglare.files.atomic import folder_lock
     from invglare.files.outputs import output_folder

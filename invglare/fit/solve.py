@@ -143,10 +143,14 @@ def _dispatch(run, start, loss_this, loss_last) -> None:
 
 
 class _Recorder(eqx.Module):
-    """Optimistix `verbose` hook: sends each step's losses to the host, tagged with the start.
+    """Optimistix `verbose` hook: sends each step's losses to the host, tagged with the start,
+    for a live progress report.
 
     It is a Module so that `run` and `start` are array leaves — under `vmap` every
-    start reports its own index (JAX runs a batched callback once per element).
+    start reports its own index (JAX runs a batched callback once per element). A program
+    with a host callback is never loaded from JAX's persistent compilation cache (its key
+    holds the callback's address), so only fits asked for progress carry one; the loss
+    history comes from :class:`_LossLog` inside the program.
     """
 
     run: Array
@@ -166,13 +170,64 @@ class _Recorder(eqx.Module):
         )
 
 
+class _LossLog(eqx.Module):
+    """A solver whose state also keeps the loss of the last accepted point at every step.
+
+    The residual function returns its loss as optimistix's `aux`; a solver's `step`
+    returns the aux of the last point it accepted before that step (at the first step,
+    the start's), which is written into a `(max_steps,)` buffer. The history thus stays
+    inside the compiled solve: no host callback, and under `vmap` a start that has
+    stopped keeps its buffer as it was.
+    """
+
+    inner: Any
+    size: int = eqx.field(static=True)
+
+    @property
+    def rtol(self):
+        return self.inner.rtol
+
+    @property
+    def atol(self):
+        return self.inner.atol
+
+    @property
+    def norm(self):
+        return self.inner.norm
+
+    def init(self, fn, y, args, options, f_struct, aux_struct, tags):
+        state = self.inner.init(fn, y, args, options, f_struct, aux_struct, tags)
+        return state, jnp.full(self.size, jnp.nan, aux_struct.dtype), jnp.asarray(0)
+
+    def step(self, fn, y, args, options, state, tags):
+        inner, losses, k = state
+        y, inner, aux = self.inner.step(fn, y, args, options, inner, tags)
+        return y, (inner, losses.at[k].set(aux, mode="drop"), k + 1), aux
+
+    def terminate(self, fn, y, args, options, state, tags):
+        return self.inner.terminate(fn, y, args, options, state[0], tags)
+
+    def postprocess(self, fn, y, aux, args, options, state, tags, result):
+        y, aux, stats = self.inner.postprocess(fn, y, aux, args, options, state[0], tags, result)
+        return y, aux, {**stats, "losses": state[1]}
+
+
+class _LoggedLeastSquares(_LossLog, optx.AbstractLeastSquaresSolver):
+    pass
+
+
+class _LoggedMinimiser(_LossLog, optx.AbstractMinimiser):
+    pass
+
+
 @dataclasses.dataclass(frozen=True)
 class _Config:
     solver: str
     rtol: float
     atol: float
     max_steps: int
-    record: bool
+    record: bool  # the loss history, in the program
+    live: bool  # progress reports from host callbacks while the solve runs
 
 
 def _status_code(result) -> Array:
@@ -238,22 +293,35 @@ def jacobian_columns(fn: ResidualFn, latent: Array, args: Any = None) -> tuple[A
 
 
 def _solve_one(fn: ResidualFn, y0: Array, start: Array, run: Array, cfg: _Config):
-    verbose = _Recorder(run, start) if cfg.record else False
+    """One start's solve: ``(value, loss, status code, steps, loss history)``; the history
+    is the loss of the last accepted point at each step, `(max_steps,)` (NaN past the last
+    step; empty unless `cfg.record`)."""
+    verbose = _Recorder(run, start) if cfg.live else False
     if cfg.solver == "lm":
-        solver = optx.LevenbergMarquardt(rtol=cfg.rtol, atol=cfg.atol, verbose=verbose)
-        sol = optx.least_squares(
-            jacobian_by_columns(fn), solver, y0, max_steps=cfg.max_steps, throw=False
-        )
+        residuals = jacobian_by_columns(fn)
+        inner = optx.LevenbergMarquardt(rtol=cfg.rtol, atol=cfg.atol, verbose=verbose)
+        logged = _LoggedLeastSquares
+
+        def objective(y, args):
+            r = residuals(y, args)
+            return r, jnp.sum(r * r)
+
+        solve = optx.least_squares
     else:
-        solver = optx.BFGS(rtol=cfg.rtol, atol=cfg.atol, verbose=verbose)
+        inner = optx.BFGS(rtol=cfg.rtol, atol=cfg.atol, verbose=verbose)
+        logged = _LoggedMinimiser
 
-        def half_sum_squares(y, args):
+        def objective(y, args):
             r = fn(y, args)
-            return 0.5 * jnp.sum(r * r)
+            half = 0.5 * jnp.sum(r * r)
+            return half, 2.0 * half
 
-        sol = optx.minimise(half_sum_squares, solver, y0, max_steps=cfg.max_steps, throw=False)
+        solve = optx.minimise
+    solver = logged(inner, cfg.max_steps) if cfg.record else inner
+    sol = solve(objective, solver, y0, has_aux=True, max_steps=cfg.max_steps, throw=False)
     r = fn(sol.value, None)
-    return sol.value, jnp.sum(r * r), _status_code(sol.result), sol.stats["num_steps"]
+    history = sol.stats["losses"] if cfg.record else jnp.zeros(0, r.dtype)
+    return sol.value, jnp.sum(r * r), _status_code(sol.result), sol.stats["num_steps"], history
 
 
 def _status_message(code: int, n_steps: int, loss: float, cfg: _Config) -> tuple[bool, str]:
@@ -280,41 +348,36 @@ def _status_message(code: int, n_steps: int, loss: float, cfg: _Config) -> tuple
     return False, "the solver stopped without converging (unrecognised optimistix result)"
 
 
-class _History:
-    """Collects the per-step losses reported by :class:`_Recorder` for one stage."""
+class _LiveProgress:
+    """Turns the per-step losses :class:`_Recorder` sends into :class:`FitProgress` reports,
+    one whenever a start's last accepted loss changes."""
 
     def __init__(self, stage: int, n_stages: int, factor: int, n_starts: int, progress):
-        self.raw: dict[int, list[tuple[float, float]]] = {i: [] for i in range(n_starts)}
         self.info = (stage, n_stages, factor, n_starts)
         self.progress = progress
-        self._reported: dict[int, float] = {}
+        self.accepted: dict[int, list[float]] = {}
 
     def __call__(self, i: int, loss_this: float, loss_last: float) -> None:
-        # Optimistix reports sum(r**2) / 2; the fit's loss is sum(r**2).
-        entry = (2.0 * loss_this, 2.0 * loss_last)
-        self.raw.setdefault(i, []).append(entry)
-        if self.progress is not None:
-            hist = self.history(i)
-            if hist and self._reported.get(i) != hist[-1]:
-                self._reported[i] = hist[-1]
-                stage, n_stages, factor, n_starts = self.info
-                self.progress(
-                    FitProgress(stage, n_stages, factor, i, n_starts, len(hist) - 1, hist[-1])
-                )
+        seen = self.accepted.setdefault(i, [])
+        # Optimistix reports sum(r**2) / 2, the fit's loss is sum(r**2). The first report
+        # carries the start's loss as "this step" ("last accepted" is not yet defined); a
+        # start that has stopped repeats its last one while the other starts go on (vmap).
+        loss = 2.0 * (loss_last if seen else loss_this)
+        if seen and loss == seen[-1]:
+            return
+        seen.append(loss)
+        stage, n_stages, factor, n_starts = self.info
+        self.progress(FitProgress(stage, n_stages, factor, i, n_starts, len(seen) - 1, loss))
 
-    def history(self, start: int, final: float | None = None) -> list[float]:
-        """Loss at the start and after each accepted step (repeats from `vmap` padding dropped)."""
-        raw = self.raw.get(start, [])
-        # The first report carries the loss at y0 as "this step" (the "last accepted" is not
-        # yet defined); later reports carry the last accepted loss.
-        seq = [raw[0][0]] + [last for _, last in raw[1:]] if raw else []
-        if final is not None:
-            seq.append(float(final))
-        out: list[float] = []
-        for v in seq:
-            if not out or v != out[-1]:
-                out.append(v)
-        return out
+
+def _loss_history(recorded: np.ndarray, n_steps: int, final: float) -> list[float]:
+    """Loss at the start and after each accepted step, from a solve's recorded losses (the
+    last accepted loss at each step) and its final loss, repeats dropped."""
+    out: list[float] = []
+    for v in [*np.asarray(recorded)[: int(n_steps)].tolist(), float(final)]:
+        if not out or v != out[-1]:
+            out.append(v)
+    return out
 
 
 #: Compiled solves kept for reuse: a fit with the same shapes, settings and parameter
@@ -378,8 +441,9 @@ def _run_stage(
     cfg: _Config,
     batch: str,
     sink: Callable | None,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, float, float]:
-    """Solve from every row of `y0s`; returns values, losses, codes, steps, compile s, solve s."""
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, float, float]:
+    """Solve from every row of `y0s`; returns values, losses, codes, steps, recorded losses
+    (:func:`_solve_one`), compile s, solve s."""
     starts = jnp.arange(y0s.shape[0], dtype=jnp.int32)
     run_id = next(_NEXT_RUN)
     run = jnp.asarray(run_id, dtype=jnp.int32)
@@ -390,7 +454,7 @@ def _run_stage(
             compiled, t_compile = _compile(fn, y0s, starts, run, cfg, batch)
             t1 = time.perf_counter()
             out = jax.block_until_ready(compiled(fn, y0s, starts, run, cfg))
-            values, losses, codes, steps = (np.asarray(o) for o in out)
+            values, losses, codes, steps, histories = (np.asarray(o) for o in out)
         else:
             compiled, t_compile = _compile(fn, y0s[0], starts[0], run, cfg, batch)
             t1 = time.perf_counter()
@@ -398,15 +462,15 @@ def _run_stage(
                 jax.block_until_ready(compiled(fn, y0s[k], starts[k], run, cfg))
                 for k in range(y0s.shape[0])
             ]
-            values, losses, codes, steps = (
-                np.stack([np.asarray(o[j]) for o in outs]) for j in range(4)
+            values, losses, codes, steps, histories = (
+                np.stack([np.asarray(o[j]) for o in outs]) for j in range(5)
             )
         # Callbacks are asynchronous: make sure every report has arrived.
         jax.effects_barrier()
         t2 = time.perf_counter()
     finally:
         _SINKS.pop(run_id, None)
-    return values, losses, codes, steps, t_compile, t2 - t1
+    return values, losses, codes, steps, histories, t_compile, t2 - t1
 
 
 def _run_stage_many(
@@ -415,7 +479,7 @@ def _run_stage_many(
     cfg: _Config,
     batch: str,
     sinks: Sequence[Callable | None],
-) -> list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, float, float]]:
+) -> list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, float, float]]:
     """:func:`_run_stage` for several photos in one compiled call (vmapped over photos).
 
     Each photo's outputs come back as :func:`_run_stage` returns them; the compile and
@@ -435,7 +499,7 @@ def _run_stage_many(
             compiled, t_compile = _compile(fn, y0, starts, runs, cfg, "vmap*")
             t1 = time.perf_counter()
             out = jax.block_until_ready(compiled(fn, y0, starts, runs, cfg))
-            values, losses, codes, steps = (np.asarray(o) for o in out)
+            values, losses, codes, steps, histories = (np.asarray(o) for o in out)
         else:
             compiled, t_compile = _compile(fn, y0[:, 0], starts[0], runs, cfg, "loop*")
             t1 = time.perf_counter()
@@ -443,8 +507,8 @@ def _run_stage_many(
                 jax.block_until_ready(compiled(fn, y0[:, j], starts[j], runs, cfg))
                 for j in range(y0.shape[1])
             ]
-            values, losses, codes, steps = (
-                np.stack([np.asarray(o[m]) for o in outs], axis=1) for m in range(4)
+            values, losses, codes, steps, histories = (
+                np.stack([np.asarray(o[m]) for o in outs], axis=1) for m in range(5)
             )
         jax.effects_barrier()
         t2 = time.perf_counter()
@@ -452,7 +516,7 @@ def _run_stage_many(
         for run_id in run_ids:
             _SINKS.pop(run_id, None)
     t_c, t_s = t_compile / k, (t2 - t1) / k
-    return [(values[j], losses[j], codes[j], steps[j], t_c, t_s) for j in range(k)]
+    return [(values[j], losses[j], codes[j], steps[j], histories[j], t_c, t_s) for j in range(k)]
 
 
 def stack_modules(modules: Sequence[Any]) -> Any:
@@ -631,8 +695,10 @@ def fit(
     - `truth`: ``{path: value}`` stored in the result, for synthetic targets.
     - `batch`: ``"vmap"`` (all starts in one call) or ``"loop"`` (one call each).
     - `progress`: called with a :class:`FitProgress` whenever a start accepts a
-      step (from JAX's host callback, while the solve runs).
-    - `record_history`: collect the loss history (host callbacks; a little slower).
+      step (from JAX's host callback, while the solve runs; a solve with a callback is
+      compiled anew in every process, never loaded from JAX's persistent cache).
+    - `record_history`: keep each start's loss history in its stage records (recorded
+      inside the compiled solve).
     - `diagnostics`: compute the covariance (the information at the optimum), the model
       and residual images, the flags and the optimum check. ``False`` skips them (stderr
       and covariance NaN, images None, no flags), which saves compiling more programs
@@ -815,7 +881,10 @@ class _FitRun:
         self.covariance_scale, self.diagnostics = covariance_scale, diagnostics
         self.progress, self.record_history = progress, bool(record_history)
         self.solver = solver
-        self.cfg = _Config(solver, float(rtol), float(atol), int(max_steps), bool(record_history))
+        self.cfg = _Config(
+            solver, float(rtol), float(atol), int(max_steps), bool(record_history),
+            live=progress is not None,
+        )  # fmt: skip
         self.fn_full = fn_full = make_residual_fn(
             space, forward_template, target, views, view_options=view_options
         )
@@ -842,21 +911,21 @@ class _FitRun:
         self.stage_y0 = y0s
         self.origin = np.arange(y0s.shape[0])  # first-stage start each start descends from
         self.steps_so_far = np.zeros(y0s.shape[0], dtype=int)
-        self.history: _History | None = None
 
     @property
     def n_stages(self) -> int:
         return len(self.plan)
 
     def stage_inputs(self, s: int) -> tuple[ResidualFn, Array, Callable | None]:
-        """Stage `s`'s residual function, latent starts and step-loss receiver."""
+        """Stage `s`'s residual function, latent starts and receiver of live step losses."""
         factor, fn = self.plan[s]
-        self.history = _History(s, len(self.plan), factor, self.stage_y0.shape[0], self.progress)
-        return fn, self.stage_y0, self.history if self.record_history else None
+        n = self.stage_y0.shape[0]
+        live = None if self.progress is None else _LiveProgress(
+            s, len(self.plan), factor, n, self.progress)  # fmt: skip
+        return fn, self.stage_y0, live
 
-    def stage_done(self, s, values, losses, codes, steps, t_c, t_s) -> None:
+    def stage_done(self, s, values, losses, codes, steps, recorded, t_c, t_s) -> None:
         """Book stage `s`'s solves; pick the starts of the next stage."""
-        history = self.history
         self.compile_s += t_c
         self.solve_s += t_s
         losses = np.where(np.isfinite(losses), losses, np.inf)
@@ -874,7 +943,9 @@ class _FitRun:
             "converged": [c for c, _ in statuses],
             "messages": [m for _, m in statuses],
             "loss_history": [
-                history.history(i, losses[i]) if self.record_history else [float(losses[i])]
+                _loss_history(recorded[i], steps[i], losses[i])
+                if self.record_history
+                else [float(losses[i])]
                 for i in range(self.stage_y0.shape[0])
             ],
             "best": int(order[0]),
