@@ -27,6 +27,24 @@ if _cache != "off":
     os.environ.setdefault("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", "0")
 
 
+#: The longest tests (minutes each under CI's two xdist workers, by ``--durations``), run
+#: first, longest first: started last, one of them kept a worker busy for minutes after the
+#: other had run out of tests.
+_LONGEST_FIRST = (
+    "tests/fit/test_other_draws.py::test_a_daylight_eye_the_model_did_not_draw",
+    "tests/fit/test_other_draws.py::test_a_night_eye_the_model_did_not_draw",
+    "tests/bench/test_bench.py::test_batch_benchmark_times_warm_clusters_of_1_and_2_workers",
+    "tests/test_readme.py::test_readme_section_runs[Animated glare through a living eye "
+    "(Ritschel et al.)]",
+    "tests/test_readme.py::test_readme_section_runs[Many photos at once: invglare fit-batch]",
+)
+
+
+def pytest_collection_modifyitems(config, items):
+    rank = {node: i for i, node in enumerate(_LONGEST_FIRST)}
+    items.sort(key=lambda item: rank.get(item.nodeid, len(rank)))  # stable: the rest in order
+
+
 def pytest_unconfigure(config):
     if _made_cache is not None:
         shutil.rmtree(_made_cache, ignore_errors=True)
