@@ -168,12 +168,12 @@ def run_fit(
     callbacks from the solves, which keeps JAX from caching them on disk.)
     """
     from invglare.commands import options
-
-    if progress is None:
-        progress = sys.stderr.isatty()
     from invglare.config.fit import is_reference_fit, load_fit
     from invglare.files.atomic import folder_lock
     from invglare.files.outputs import output_folder
+
+    if progress is None:
+        progress = sys.stderr.isatty()
 
     options.count(n_starts, "--n-starts")
     options.count(max_steps, "--max-steps")
