@@ -69,7 +69,7 @@ def solve_photos(
     loss (n,), status (n,), information (n, p, p))``: the information is ``J^T J`` of the
     likelihood's scoring form when `fn` is the likelihood, else of `fn`'s residuals.
     """
-    cfg = _Config("lm", float(rtol), float(atol), int(max_steps), False)
+    cfg = _Config("lm", float(rtol), float(atol), int(max_steps), record=False, live=False)
     return _solve_photos(fn, jnp.asarray(latent0), targets, saturated, cfg)
 
 
@@ -78,7 +78,7 @@ def _solve_photos(fn, latent0, targets, saturated, cfg):
     def one(target, sat):
         f = eqx.tree_at(lambda r: (r.target, r.saturated), fn, (target, sat))
         zero = jnp.asarray(0, jnp.int32)
-        z, loss, code, _ = _solve_one(f, latent0, zero, zero, cfg)
+        z, loss, code, *_ = _solve_one(f, latent0, zero, zero, cfg)
         jac, _ = jacobian_columns(f.information_form() if f.pure_likelihood else f, z)
         return z, loss, code, jac.T @ jac
 
