@@ -213,11 +213,11 @@ class _LossLog(eqx.Module):
 
 
 class _LoggedLeastSquares(_LossLog, optx.AbstractLeastSquaresSolver):
-    pass
+    """:class:`_LossLog` of a least-squares solver (Levenberg–Marquardt)."""
 
 
 class _LoggedMinimiser(_LossLog, optx.AbstractMinimiser):
-    pass
+    """:class:`_LossLog` of a minimiser (BFGS): `optx.minimise` accepts only these."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -879,7 +879,7 @@ class _FitRun:
         self.space, self.views, self.truth = space, views, truth
         self.refine_top = int(refine_top)
         self.covariance_scale, self.diagnostics = covariance_scale, diagnostics
-        self.progress, self.record_history = progress, bool(record_history)
+        self.progress = progress
         self.solver = solver
         self.cfg = _Config(
             solver, float(rtol), float(atol), int(max_steps), bool(record_history),
@@ -944,7 +944,7 @@ class _FitRun:
             "messages": [m for _, m in statuses],
             "loss_history": [
                 _loss_history(recorded[i], steps[i], losses[i])
-                if self.record_history
+                if self.cfg.record
                 else [float(losses[i])]
                 for i in range(self.stage_y0.shape[0])
             ],
