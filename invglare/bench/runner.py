@@ -37,7 +37,7 @@ from invglare.bench.cases import Case
 from invglare.bench.fit import FIT_CASES
 from invglare.bench.holographic_cases import HOLOGRAPHIC_CASES, paper_markdown
 from invglare.bench.peer_cases import PEER_CASES, cpu_info
-from invglare.bench.quad_cases import QUAD_CASES, quad_markdown
+from invglare.bench.quad_cases import PROGRESSIVE_PAIRS, QUAD_CASES, quad_markdown
 from invglare.bench.sample import SAMPLE_CASES
 from invglare.bench.temporal_cases import TEMPORAL_CASES, stage_markdown
 from invglare.bench.timing import load_1m, measure_together
@@ -158,18 +158,24 @@ def _meta() -> dict[str, Any]:
     }
 
 
+#: Cases timed together with a twin, their calls alternating, since the two's difference
+#: or ratio is the result: a torch layer and the same JAX call, a progressive frame and
+#: the same frame from scratch.
+TIMED_TOGETHER: dict[str, str] = {**PAIRS, **PROGRESSIVE_PAIRS}
+
+
 def _jobs(cases: list[Case], sizes: list[int]) -> list[tuple[tuple[Case, ...], int]]:
-    """What to time, size by size: each case alone, except a torch layer and its JAX twin
-    (:data:`~invglare.bench.torch_cases.PAIRS`), timed together with their calls
-    alternating, since their difference is the result."""
+    """What to time, size by size: each case alone, except those of
+    :data:`TIMED_TOGETHER` whose twin runs too, timed with it."""
     by_name = {c.name: c for c in cases}
-    twins = {PAIRS[c.name] for c in cases if c.name in PAIRS and PAIRS[c.name] in by_name}
+    pairs = TIMED_TOGETHER
+    twins = {pairs[c.name] for c in cases if c.name in pairs and pairs[c.name] in by_name}
     jobs = []
     for n in sizes:
         for case in cases:
             if case.name in twins:
                 continue
-            twin = by_name.get(PAIRS.get(case.name, ""))
+            twin = by_name.get(pairs.get(case.name, ""))
             jobs.append(((case, twin) if twin is not None else (case,), n))
     return jobs
 

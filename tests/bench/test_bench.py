@@ -313,6 +313,8 @@ def test_torch_cases_are_timed_with_their_twins_and_alone_without_them():
     assert jobs == [((CASES[0],), 32), ((torch_psf, twin), 32),
                     ((CASES[0],), 64), ((torch_psf, twin), 64)]  # fmt: skip
     assert runner._jobs([torch_psf], [32]) == [((torch_psf,), 32)]
+    prog, full = by_name["quad_prog_box"], by_name["quad_prog_full_box"]
+    assert runner._jobs([full, prog], [32]) == [((prog, full), 32)]
 
 
 def test_cli_bench_rejects_bad_sizes_and_unknown_cases(tmp_path):

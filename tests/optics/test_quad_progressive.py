@@ -10,7 +10,7 @@ import pytest
 
 from invglare._core.grids import AngularGrid
 from invglare.errors import ConfigError, InputDataError, PhysicsRangeError
-from invglare.optics.quad import ProgressiveQuads, moving_shadow
+from invglare.optics.quad import ProgressiveQuads, moving_shadow, progressive
 from invglare.optics.quad.apertures import paper_grid, paper_raster
 from invglare.optics.quad.arealight import area_light_image, serpentine
 from invglare.optics.quad.spectral import (
@@ -27,12 +27,17 @@ def _output(grid, npix=NPIX, lam=550.0):
     return AngularGrid(npix, math.degrees(lam * 1e-6 / (2 * npix * float(grid.pitch_mm)) * 2))
 
 
+@pytest.mark.parametrize("pixel_quads_up_to", [progressive.PIXEL_QUADS_UP_TO, 0])
 @pytest.mark.parametrize("distance_mm", [None, 150.0])
-def test_progressive_equals_full_evaluation_over_60_frames(distance_mm):
+def test_progressive_equals_full_evaluation_over_60_frames(
+    distance_mm, pixel_quads_up_to, monkeypatch
+):
     """The paper's benchmark animation (a circular shadow moving 5 px per frame) over the
     heptagon, far and near field, float32: every 10th frame and the last, the progressive
     image equals a full evaluation to 1e-5 of the peak (measured 6e-7 far, 2e-6 near on
-    256 px; here 64 px). The difference quads are fewer than the full frame's."""
+    256 px; here 64 px), with the differences as pixels (the default here) and as the
+    paper's quadtrees (forced). The difference quads are fewer than the full frame's."""
+    monkeypatch.setattr(progressive, "PIXEL_QUADS_UP_TO", pixel_quads_up_to)
     grid = paper_grid(N_AP)
     aperture = paper_raster("heptagon", N_AP)
     frame = moving_shadow(aperture, 9.0, (2.0, 20.0), (1.0, 0.3))  # 5 px per frame at 320 px
@@ -48,6 +53,26 @@ def test_progressive_equals_full_evaluation_over_60_frames(distance_mm):
     full_quads = prog.stats[0].quads
     assert np.mean([s.quads for s in prog.stats[1:]]) < full_quads
     assert [s.full for s in prog.stats] == [True] + [False] * 59
+
+
+@pytest.mark.parametrize("pixel_quads_up_to", [progressive.PIXEL_QUADS_UP_TO, 0])
+def test_difference_quads_add_up_to_the_difference(pixel_quads_up_to, monkeypatch):
+    """Painting the quads of a signed difference (pixels, or the two quadtrees when forced)
+    back onto the raster gives the difference exactly, at its place in the whole raster."""
+    monkeypatch.setattr(progressive, "PIXEL_QUADS_UP_TO", pixel_quads_up_to)
+    rng = np.random.default_rng(5)
+    crop = np.where(rng.random((13, 21)) < 0.3, rng.normal(size=(13, 21)), 0.0)
+    crop[4:12, 2:10] = 0.75  # a uniform block the quadtree merges
+    origin = (7, 30)
+    parts = progressive.difference_quads(crop, 0, origin)
+    assert len(parts) == (1 if pixel_quads_up_to else 2)
+    painted = np.zeros((40, 64))
+    for x0, y0, w, h, amps in parts:
+        for x, y, ww, hh, a in zip(x0, y0, w, h, amps, strict=True):
+            painted[y : y + hh, x : x + ww] += a
+    expected = np.zeros((40, 64))
+    expected[7:20, 30:51] = crop
+    np.testing.assert_allclose(painted, expected, rtol=0, atol=1e-12)
 
 
 def test_moving_shadow_is_the_anti_aliased_disk_it_describes():
