@@ -1,4 +1,5 @@
-"""The bottom tier: shared checks, grids and units, colour constants and XLA helpers.
+"""The bottom tier: shared checks, grids and units, colour constants, gradient-safe maths
+and XLA helpers.
 
 Every other tier may import from here; nothing here imports from the rest of invglare
 except :mod:`invglare.errors`.

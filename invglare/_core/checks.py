@@ -43,6 +43,14 @@ def choose(name: str, value: str, valid: Sequence[str]) -> str:
     return value
 
 
+def check_static_int(name: str, value, lo: int) -> int:
+    """`value` as an ``int``, or a :class:`ConfigError` unless it is a Python (or NumPy)
+    integer >= `lo` (not a bool)."""
+    if not isinstance(value, int | np.integer) or isinstance(value, bool) or value < lo:
+        raise ConfigError(f"{name} must be an integer >= {lo}, got {value!r}")
+    return int(value)
+
+
 def check_positive(name: str, value, unit: str = "") -> None:
     """Raise :class:`PhysicsRangeError` unless every element of a concrete `value` is > 0."""
     if not is_concrete(value):

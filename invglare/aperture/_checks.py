@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from invglare._core.checks import is_concrete, shown
-from invglare.errors import ConfigError, PhysicsRangeError
+from invglare.errors import PhysicsRangeError
 
 
 def check_finite(name: str, value, shape: tuple[int, ...] | None = None) -> None:
@@ -24,9 +24,3 @@ def check_finite(name: str, value, shape: tuple[int, ...] | None = None) -> None
         raise PhysicsRangeError(f"{name} must have shape {tuple(shape)}, got shape {arr.shape}")
     if not np.all(np.isfinite(arr)):
         raise PhysicsRangeError(f"{name} must be finite, got {shown(arr)}")
-
-
-def check_static_int(name: str, value, lo: int) -> None:
-    """Raise :class:`ConfigError` unless `value` is a Python (or NumPy) integer >= `lo`."""
-    if not isinstance(value, int | np.integer) or isinstance(value, bool) or value < lo:
-        raise ConfigError(f"{name} must be an integer >= {lo}, got {value!r}")

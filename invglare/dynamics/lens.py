@@ -43,16 +43,11 @@ import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float
 
 from invglare._core.checks import as_float, check_range
+from invglare._core.maths import safe_sqrt
 from invglare.errors import ConfigError
 
 # The 4 spring directions (row, column offsets); with their opposites, the 8 neighbours.
 _SPRINGS = ((0, 1), (1, 0), (1, 1), (1, -1))
-
-
-def safe_sqrt(x: Array) -> Array:
-    """``sqrt(max(x, 0))`` with a finite (zero) gradient where ``x <= 0``."""
-    positive = x > 0
-    return jnp.where(positive, jnp.sqrt(jnp.where(positive, x, 1.0)), 0.0)
 
 
 class LensState(eqx.Module):

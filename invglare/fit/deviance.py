@@ -48,6 +48,8 @@ from __future__ import annotations
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float
 
+from invglare._core.maths import safe_sqrt
+
 # Variances are floored here: a pixel with no read noise and no light has none, and the
 # Gaussian likelihood is then degenerate (the fit refuses such photos; see
 # `invglare.fit.views.check_likelihood_input`).
@@ -90,11 +92,6 @@ def _q(u: Array) -> Array:
     return jnp.where(small, series, direct)
 
 
-def _safe_sqrt(x: Array) -> Array:
-    ok = x > 0
-    return jnp.where(ok, jnp.sqrt(jnp.where(ok, x, 1.0)), 0.0)
-
-
 def deviance_residuals(
     observed: Float[ArrayLike, "*shape"],
     expected: Float[ArrayLike, "*shape"],
@@ -125,7 +122,7 @@ def deviance_residuals(
     # Elsewhere (one side of the kink or the other) the direct difference, away from 0
     # except at the kink itself.
     dev = (o - e) ** 2 / v + jnp.log(v) - (o - mu_s) ** 2 / v_s - jnp.log(v_s)
-    r_gen = jnp.sign(mu_s - e) * _safe_sqrt(dev)
+    r_gen = jnp.sign(mu_s - e) * safe_sqrt(dev)
     return jnp.where(pos, r_pos, jnp.where(flat, r_flat, r_gen))
 
 

@@ -46,6 +46,7 @@ from jax.scipy.special import log_ndtr
 from jaxtyping import Array, ArrayLike, Bool, Float
 
 from invglare._core.checks import as_float, is_concrete
+from invglare._core.maths import safe_sqrt
 from invglare.errors import ConfigError
 from invglare.fit.deviance import deviance_residuals, fisher_weight, pixel_log_likelihood_gradient
 from invglare.fit.lash_prior import layout_priors, prior_residuals
@@ -75,11 +76,10 @@ def _offsets(shape, centre, dtype):
     y = jnp.arange(h, dtype=dtype)[:, None] - cy
     x, y = jnp.broadcast_arrays(x, y)
     r2 = x * x + y * y
-    # A pixel exactly at the centre has r = 0, where sqrt and atan2 have no derivative;
-    # the double `where` keeps NaN out of the gradient there.
+    # A pixel exactly at the centre has r = 0, where sqrt and atan2 have no derivative:
+    # safe_sqrt, and `ok` for the callers' atan2, keep NaN out of the gradient there.
     ok = r2 > 0
-    r = jnp.where(ok, jnp.sqrt(jnp.where(ok, r2, 1.0)), 0.0)
-    return x, y, r, ok
+    return x, y, safe_sqrt(r2), ok
 
 
 def _dtype(image) -> Any:

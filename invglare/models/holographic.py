@@ -50,6 +50,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float, Key
 
+from invglare._core.checks import as_float, check_static_int
 from invglare.aperture.eye import EyeAperture, eye_to_config
 from invglare.errors import ConfigError, InputDataError, PhysicsRangeError
 from invglare.models.base import AbstractGlareModel
@@ -115,21 +116,8 @@ def crop_taper(m: int, taper_px: int) -> np.ndarray:
     return np.outer(w, w)
 
 
-def _float(x) -> Array:
-    arr = jnp.asarray(x)
-    if not jnp.issubdtype(arr.dtype, jnp.floating):
-        arr = arr.astype(jnp.result_type(float))
-    return arr
-
-
 def _concrete(*xs) -> bool:
     return not any(isinstance(x, jax.core.Tracer) for x in xs)
-
-
-def _check_int(name: str, value, lo: int) -> int:
-    if not isinstance(value, int | np.integer) or isinstance(value, bool) or value < lo:
-        raise ConfigError(f"{name} must be an integer >= {lo}, got {value!r}")
-    return int(value)
 
 
 def check_iterations(iterations) -> int:
@@ -202,8 +190,8 @@ class HolographicEye(AbstractGlareModel):
     renders_scenes: ClassVar[bool] = True
 
     eye: EyeAperture
-    accommodation_d: Float[Array, ""] = eqx.field(converter=_float)
-    depth_mm: Float[Array, ""] = eqx.field(converter=_float)
+    accommodation_d: Float[Array, ""] = eqx.field(converter=as_float)
+    depth_mm: Float[Array, ""] = eqx.field(converter=as_float)
     tear_film: TearFilm | None
     spectacles: Spectacles | None
     sampling: HoloSampling
@@ -318,8 +306,8 @@ class HolographicEye(AbstractGlareModel):
         if mode not in MODES:
             raise ConfigError(f"mode = {mode!r} is not one of {', '.join(MODES)}")
         iterations = check_iterations(iterations)
-        input_step = _check_int("input_step", input_step, 1)
-        psf_tiles = _check_int("psf_tiles", psf_tiles, 1)
+        input_step = check_static_int("input_step", input_step, 1)
+        psf_tiles = check_static_int("psf_tiles", psf_tiles, 1)
         accommodation = focus_to_accommodation_d(focus_distance_mm)
         if not (isinstance(depth_mm, int | float) and math.isfinite(depth_mm) and depth_mm > 0):
             raise PhysicsRangeError(f"depth_mm must be a finite depth > 0 mm, got {depth_mm!r}")
@@ -331,7 +319,7 @@ class HolographicEye(AbstractGlareModel):
             depth_layers = depth_layers_needed(
                 frustum.near_mm, far, pupil_mm, min(sampling.wavelengths_nm)
             )
-        depth_layers = _check_int("depth_layers", depth_layers, 1)
+        depth_layers = check_static_int("depth_layers", depth_layers, 1)
         if not (math.isfinite(memory_budget_mb) and memory_budget_mb > 0):
             raise ConfigError(f"memory_budget_mb must be > 0, got {memory_budget_mb!r}")
         per_iteration = iteration_bytes(npix, sampling.n_channels, depth_layers)
@@ -349,7 +337,7 @@ class HolographicEye(AbstractGlareModel):
             # 512^2: 5.0-5.6 s for 64 draws one by one against 8.3-10 s eight at a time);
             # accelerators want batches as large as the budget allows.
             chunk = 1 if jax.default_backend() == "cpu" else 32
-        chunk = _check_int("chunk", chunk, 1)
+        chunk = check_static_int("chunk", chunk, 1)
         chunk = max(1, min(chunk, iterations, int((budget - fixed) // per_iteration)))
         grid = sampling.grid(min(sampling.wavelengths_nm))
         eye = eye.with_stamp_windows(grid)
@@ -383,7 +371,7 @@ class HolographicEye(AbstractGlareModel):
             # 5e-5-8e-4 of the PSF's peak (measured for -0.5 D at 15.6 mm; 3e-6 without).
             with_glasses = "spectacles" in layers and spectacles is not None
             layer_npix = npix if with_glasses else min(npix, fft_size(least, even=True))
-        layer_npix = _check_int("layer_npix", layer_npix, 8)
+        layer_npix = check_static_int("layer_npix", layer_npix, 8)
         if layer_npix > npix or (layer_npix < npix and layer_npix < least):
             raise PhysicsRangeError(
                 f"layer_npix = {layer_npix} must be <= npix = {npix} and, when smaller, hold "
@@ -514,7 +502,7 @@ class HolographicEye(AbstractGlareModel):
         """
         from invglare._core.grids import ApertureGrid
 
-        lam = _float(wavelength_nm)
+        lam = as_float(wavelength_nm)
         n, m = self.npix, self.layer_npix
         # The layers' grid: the central m x m samples of the channel's N x N grid.
         grid = ApertureGrid(m, lam * 1e-6 / (n * self.sampling.pixel_scale_rad))
@@ -635,7 +623,7 @@ class HolographicEye(AbstractGlareModel):
 
     def _sources(self, frame, depth):
         """Amplitudes at their bins, the depth layers' vergences and each bin's layer (jittable)."""
-        img = _float(frame)
+        img = as_float(frame)
         img = img[None] if img.ndim == 2 else jnp.moveaxis(img, -1, 0)
         n_ch = self.sampling.n_channels
         img = jnp.broadcast_to(img, (n_ch, *img.shape[1:]))
@@ -644,10 +632,10 @@ class HolographicEye(AbstractGlareModel):
         if depth is None:
             z = jnp.broadcast_to(self.depth_mm, (n, n)).astype(placed.dtype)
         elif jnp.ndim(depth) == 0:
-            z = jnp.broadcast_to(_float(depth), (n, n)).astype(placed.dtype)
+            z = jnp.broadcast_to(as_float(depth), (n, n)).astype(placed.dtype)
         else:
             ty, tx = directions(n, self.sampling.pixel_scale_rad, placed.dtype)
-            d = _float(depth)
+            d = as_float(depth)
             d = d[..., 0] if d.ndim == 3 else d
             d_placed = place_frame(d[None], n, step)[0]
             z_all = decode_depth(d_placed, self.frustum, (ty, tx))
@@ -706,7 +694,7 @@ class HolographicEye(AbstractGlareModel):
         if isinstance(key, int | np.integer):
             key = jax.random.key(int(key))
         self._validate(frame, depth, time_s)
-        depth = depth if depth is None or np.ndim(depth) else _float(depth)
+        depth = depth if depth is None or np.ndim(depth) else as_float(depth)
         if progress:
             amps, vergences, index = self._sources(frame, depth)
             mean = iterate_intensity(
@@ -714,7 +702,7 @@ class HolographicEye(AbstractGlareModel):
                 phases=self.phases, chunk=self.chunk, progress=True,
             )  # fmt: skip
             return self._to_image(mean, np.shape(frame)[:2])
-        return _render(self, frame, depth, key, n_it, _float(time_s))
+        return _render(self, frame, depth, key, n_it, as_float(time_s))
 
     def speckle_free_image(
         self,
@@ -730,10 +718,10 @@ class HolographicEye(AbstractGlareModel):
         exact PSFs at the centres of `tiles` x `tiles` tiles (default `psf_tiles`) of the
         frame, blended bilinearly. Same arguments and output as :meth:`render`.
         """
-        tiles = self.psf_tiles if tiles is None else _check_int("tiles", tiles, 1)
+        tiles = self.psf_tiles if tiles is None else check_static_int("tiles", tiles, 1)
         self._validate(frame, depth, time_s)
-        depth = depth if depth is None or np.ndim(depth) else _float(depth)
-        return _speckle_free(self, frame, depth, _float(time_s), tiles)
+        depth = depth if depth is None or np.ndim(depth) else as_float(depth)
+        return _speckle_free(self, frame, depth, as_float(time_s), tiles)
 
     def _speckle_free_core(self, frame, depth, time_s, tiles: int) -> Array:
         amps, vergences, index = self._sources(frame, depth)
@@ -801,9 +789,9 @@ class HolographicEye(AbstractGlareModel):
         """
         return _psf(
             self,
-            None if light_angle_deg is None else _float(light_angle_deg),
-            self.depth_mm if depth_mm is None else _float(depth_mm),
-            _float(time_s),
+            None if light_angle_deg is None else as_float(light_angle_deg),
+            self.depth_mm if depth_mm is None else as_float(depth_mm),
+            as_float(time_s),
         )
 
     def _psf_core(self, light_angle_deg, depth_mm, time_s) -> Array:
@@ -836,14 +824,14 @@ class HolographicEye(AbstractGlareModel):
                 "time to psf(time_s=...) or render(time_s=...)"
             )
         if light_angle_deg is not None:
-            _check_angle(_float(light_angle_deg), batched=False)
+            _check_angle(as_float(light_angle_deg), batched=False)
         return self.psf(light_angle_deg)
 
     def batch(
         self, light_angles_deg: Float[ArrayLike, "K 2"], batch_size: int | None = None
     ) -> Array:
         """PSFs of many lights ``(K, N, N[, C])``; one PSF repeated when shift-invariant."""
-        angles = _float(light_angles_deg)
+        angles = as_float(light_angles_deg)
         _check_angle(angles, batched=True)
         if self.shift_invariant:
             one = self.psf()

@@ -83,6 +83,7 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Float, Key
 
 from invglare._core.checks import as_float, as_key, is_concrete
+from invglare._core.maths import safe_sqrt
 from invglare.aperture.eye import EyeAperture, Particles, eye_to_config
 from invglare.dynamics import (
     DynamicsState,
@@ -91,7 +92,6 @@ from invglare.dynamics import (
     hippus_scale,
     max_hippus_amplitude_mm,
 )
-from invglare.dynamics.lens import safe_sqrt
 from invglare.dynamics.noise import uniform
 from invglare.dynamics.pupil import MOON_SPENCER_RANGE_MM
 from invglare.errors import ConfigError, InputDataError, PhysicsRangeError

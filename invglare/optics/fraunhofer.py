@@ -31,6 +31,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float, Inexact
 
 from invglare._core.grids import AngularGrid, ApertureGrid, nm_to_mm, rad_to_deg
+from invglare._core.maths import safe_sqrt
 from invglare._core.xla import materialise
 from invglare.optics.fourier import crop_centred, dft_matrix, mft2, mft2_matrices
 
@@ -52,9 +53,7 @@ def open_area_px(field: Inexact[Array, "n n"]) -> Float[Array, ""]:
     """
     if not jnp.iscomplexobj(field):
         return jnp.sum(jnp.abs(field))
-    m2 = abs2(field)
-    ok = m2 > 0
-    return jnp.sum(jnp.where(ok, jnp.sqrt(jnp.where(ok, m2, 1.0)), 0.0))
+    return jnp.sum(safe_sqrt(abs2(field)))
 
 
 def transmitted_power(field: Inexact[Array, "n n"], pitch_mm: ArrayLike) -> Float[Array, ""]:

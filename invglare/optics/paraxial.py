@@ -73,6 +73,7 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
 from invglare._core.checks import as_float, is_concrete
+from invglare._core.maths import safe_sqrt
 from invglare.errors import ConfigError, PhysicsRangeError
 
 __all__ = [
@@ -666,7 +667,7 @@ def ghost_spots(
     foot_r = jnp.abs(p_e) * rho[:, None]
     # Norm with a zero gradient at 0 (every footprint is centred on the axis when u0 = 0).
     foot_d2 = jnp.sum(foot_c**2, axis=-1)
-    foot_d = jnp.where(foot_d2 > 0, jnp.sqrt(jnp.where(foot_d2 > 0, foot_d2, 1.0)), 0.0)
+    foot_d = safe_sqrt(foot_d2)
     safe_r = jnp.maximum(foot_r, 1e-9 * semi)
     frac = circle_overlap_area(safe_r, semi, foot_d) / (math.pi * safe_r**2)
     frac = jnp.where(clips, jnp.clip(frac, 0.0, 1.0), 1.0)

@@ -38,6 +38,7 @@ from invglare._core.grids import (
     check_wavelengths_nm,
     nm_to_mm,
 )
+from invglare._core.maths import safe_sqrt
 from invglare.optics.bessel import bessel_j1, jinc
 
 __all__ = [
@@ -146,7 +147,7 @@ def airy_pixel_psf(
             tx = c + ox * grid.pixel_scale_rad
             r2 = ty[:, None] ** 2 + tx[None, :] ** 2
             # sqrt(0) has an infinite derivative; the on-axis value does not need it.
-            theta = jnp.where(r2 > 0, jnp.sqrt(jnp.where(r2 > 0, r2, 1.0)), 0.0)
+            theta = safe_sqrt(r2)
             acc = acc + airy_psf(theta, diameter_mm, wavelength_nm)
     return acc * (grid.solid_angle_sr() / oversample**2)
 

@@ -38,6 +38,7 @@ from jaxtyping import Array, ArrayLike, Float
 
 from invglare._core.checks import as_float, is_concrete
 from invglare._core.grids import AngularGrid
+from invglare._core.maths import safe_sqrt
 from invglare.aperture.shapes.coverage import curved_edge_coverage
 from invglare.errors import ConfigError, InputDataError, PhysicsRangeError
 
@@ -98,7 +99,7 @@ def _centre_and_radius(
     cols = jnp.arange(w, dtype=cx.dtype)[None, :] - cx
     r2 = rows * rows + cols * cols
     # sqrt has an infinite slope at 0: keep a centre that sits on a pixel differentiable.
-    r = jnp.where(r2 > 0, jnp.sqrt(jnp.where(r2 > 0, r2, 1.0)), 0.0)
+    r = safe_sqrt(r2)
     r_edge = float(min(h // 2 + 0.5, h - 0.5 - h // 2, w // 2 + 0.5, w - 0.5 - w // 2))
     return cy, cx, r, r_edge
 

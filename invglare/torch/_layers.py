@@ -41,8 +41,8 @@ from jaxtyping import Array, Float
 from invglare.config.model import build_model
 from invglare.errors import ConfigError, InputDataError
 from invglare.files.toml import load_toml
-from invglare.fit.params import Parameter, ParameterSpace, resolve_path
-from invglare.fit.paths import leaf_getter
+from invglare.fit.params import Parameter, ParameterSpace
+from invglare.fit.paths import read_path
 from invglare.render.billboard import replace_with_billboards
 from invglare.render.bright import bright_pixel_list, light_angles_deg, luminance
 from invglare.render.convolve import convolve_psf, resample_psf
@@ -118,12 +118,6 @@ def load_model(
     )
 
 
-def _leaf_value(model: Any, path: str) -> float:
-    steps, index = resolve_path(model, path)
-    leaf = np.asarray(leaf_getter(steps)(model))
-    return float(leaf[index] if index else leaf)
-
-
 def read_free(entries: Sequence[Any], model: Any) -> list[Parameter]:
     """:class:`~invglare.fit.Parameter` s from ``[[free]]``-like entries, checked on `model`.
 
@@ -151,7 +145,7 @@ def read_free(entries: Sequence[Any], model: Any) -> list[Parameter]:
             path = str(entry["path"])
             path = path[len("model.") :] if path.startswith("model.") else path
             init = entry.get("init")
-            init = _leaf_value(model, path) if init is None else init
+            init = read_path(model, path) if init is None else init
             param = Parameter(path, entry["lower"], entry["upper"], init=init,
                               transform=entry.get("transform", "auto"))  # fmt: skip
         else:

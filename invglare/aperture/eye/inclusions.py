@@ -13,9 +13,9 @@ import equinox as eqx
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
-from invglare._core.checks import as_float, check_range, choose, is_concrete
+from invglare._core.checks import as_float, check_range, check_static_int, choose, is_concrete
 from invglare._core.grids import ApertureGrid
-from invglare.aperture._checks import check_finite, check_static_int
+from invglare.aperture._checks import check_finite
 from invglare.aperture.eye.pool import AbstractPool, dtype_of, unit_draws
 from invglare.aperture.shapes.stamps import disks_log_transmission, segments_log_transmission
 from invglare.errors import PhysicsRangeError

@@ -9,9 +9,9 @@ import equinox as eqx
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float
 
-from invglare._core.checks import as_float, check_range, choose
+from invglare._core.checks import as_float, check_range, check_static_int, choose
 from invglare._core.grids import ApertureGrid
-from invglare.aperture._checks import check_finite, check_static_int
+from invglare.aperture._checks import check_finite
 from invglare.aperture.eye.lash_layout import LashLayout, slot_positions
 from invglare.aperture.eye.pool import AbstractPool, dtype_of, unit_draws
 from invglare.aperture.eye.pupil import LIDS, Eyelids

@@ -36,7 +36,7 @@ import equinox as eqx
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Complex, Float
 
-from invglare._core.checks import check_range
+from invglare._core.checks import as_float, check_range
 from invglare._core.grids import ApertureGrid, nm_to_mm
 from invglare.optics.fresnel import angular_spectrum_kernel as propagation_kernel
 
@@ -50,13 +50,6 @@ __all__ = [
     "thin_lens_phase",
     "vergence_chirp",
 ]
-
-
-def _float(x) -> Array:
-    arr = jnp.asarray(x)
-    if not jnp.issubdtype(arr.dtype, jnp.floating):
-        arr = arr.astype(jnp.result_type(float))
-    return arr
 
 
 def radius_squared_mm2(grid: ApertureGrid) -> Float[Array, "n n"]:
@@ -136,9 +129,9 @@ class Spectacles(eqx.Module):
     from +x, counter-clockwise). A myope of ``-2 D`` wears ``sphere_d = -2``.
     """
 
-    sphere_d: Float[Array, ""] = eqx.field(converter=_float, default=0.0)
-    cylinder_d: Float[Array, ""] = eqx.field(converter=_float, default=0.0)
-    axis_deg: Float[Array, ""] = eqx.field(converter=_float, default=0.0)
+    sphere_d: Float[Array, ""] = eqx.field(converter=as_float, default=0.0)
+    cylinder_d: Float[Array, ""] = eqx.field(converter=as_float, default=0.0)
+    axis_deg: Float[Array, ""] = eqx.field(converter=as_float, default=0.0)
 
     def __check_init__(self):
         for name in ("sphere_d", "cylinder_d", "axis_deg"):

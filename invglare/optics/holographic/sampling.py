@@ -31,6 +31,7 @@ from collections.abc import Sequence
 import equinox as eqx
 import numpy as np
 
+from invglare._core.checks import check_static_int
 from invglare._core.grids import ApertureGrid, check_wavelengths_nm
 from invglare.errors import ConfigError, PhysicsRangeError
 
@@ -39,12 +40,6 @@ __all__ = [
     "depth_layers_needed",
     "vergence_step_per_mm",
 ]
-
-
-def _static_int(name: str, value, lo: int) -> int:
-    if not isinstance(value, int | np.integer) or isinstance(value, bool) or value < lo:
-        raise ConfigError(f"{name} must be an integer >= {lo}, got {value!r}")
-    return int(value)
 
 
 class HoloSampling(eqx.Module):
@@ -74,7 +69,7 @@ class HoloSampling(eqx.Module):
     wavelengths_nm: tuple[float, ...] = eqx.field(static=True)
 
     def __check_init__(self):
-        _static_int("holographic npix", self.npix, 8)
+        check_static_int("holographic npix", self.npix, 8)
         if self.npix % 2:
             raise ConfigError(f"holographic npix must be even (FFT grid), got {self.npix}")
         dt = self.pixel_scale_rad

@@ -40,7 +40,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Complex, Float, Key
 
-from invglare._core.checks import check_range
+from invglare._core.checks import as_float, check_range
 from invglare._core.grids import ApertureGrid, nm_to_mm
 from invglare.aperture.eye import smooth_step
 from invglare.dynamics.noise import normal, uniform
@@ -56,13 +56,6 @@ TEAR_INDEX = 1.337
 _MODE_TAG, _SPOT_TAG = 31, 32
 #: Largest random delay (s) of a dry spot after the break-up time.
 _SPOT_DELAY_S = 1.0
-
-
-def _float(x) -> Array:
-    arr = jnp.asarray(x)
-    if not jnp.issubdtype(arr.dtype, jnp.floating):
-        arr = arr.astype(jnp.result_type(float))
-    return arr
 
 
 def _as_key(x) -> Key[Array, ""]:
@@ -107,21 +100,21 @@ class TearFilm(eqx.Module):
     ```
     """
 
-    amplitude_um: Float[Array, ""] = eqx.field(converter=_float)
-    scale_mm: Float[Array, ""] = eqx.field(converter=_float)
+    amplitude_um: Float[Array, ""] = eqx.field(converter=as_float)
+    scale_mm: Float[Array, ""] = eqx.field(converter=as_float)
     key: Key[Array, ""] = eqx.field(converter=_as_key, default=0)
     pattern: str = eqx.field(static=True, default="sinusoid")
-    angle_deg: Float[Array, ""] = eqx.field(converter=_float, default=0.0)
+    angle_deg: Float[Array, ""] = eqx.field(converter=as_float, default=0.0)
     n_modes: int = eqx.field(static=True, default=64)
     refractive_index: float = eqx.field(static=True, default=TEAR_INDEX)
-    thickness_um: Float[Array, ""] = eqx.field(converter=_float, default=7.0)
-    irregularity_growth_per_s: Float[Array, ""] = eqx.field(converter=_float, default=0.0)
-    thinning_um_per_s: Float[Array, ""] = eqx.field(converter=_float, default=0.0)
-    breakup_time_s: Float[Array, ""] = eqx.field(converter=_float, default=math.inf)
+    thickness_um: Float[Array, ""] = eqx.field(converter=as_float, default=7.0)
+    irregularity_growth_per_s: Float[Array, ""] = eqx.field(converter=as_float, default=0.0)
+    thinning_um_per_s: Float[Array, ""] = eqx.field(converter=as_float, default=0.0)
+    breakup_time_s: Float[Array, ""] = eqx.field(converter=as_float, default=math.inf)
     breakup_spots: int = eqx.field(static=True, default=0)
-    breakup_growth_mm_per_s: Float[Array, ""] = eqx.field(converter=_float, default=0.05)
-    breakup_edge_mm: Float[Array, ""] = eqx.field(converter=_float, default=0.5)
-    breakup_region_mm: Float[Array, ""] = eqx.field(converter=_float, default=2.5)
+    breakup_growth_mm_per_s: Float[Array, ""] = eqx.field(converter=as_float, default=0.05)
+    breakup_edge_mm: Float[Array, ""] = eqx.field(converter=as_float, default=0.5)
+    breakup_region_mm: Float[Array, ""] = eqx.field(converter=as_float, default=2.5)
 
     def __check_init__(self):
         if self.pattern not in TEAR_PATTERNS:
@@ -194,7 +187,7 @@ class TearFilm(eqx.Module):
     # -------------------------------------------------------------------- dynamics
 
     def _state(self, time_s):
-        t = _float(time_s)
+        t = as_float(time_s)
         scale = 1.0 + self.irregularity_growth_per_s * t
         mean_mm = jnp.maximum(self.thickness_um - self.thinning_um_per_s * t, 0.0) * 1e-3
         return t, scale, mean_mm
