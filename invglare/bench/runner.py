@@ -169,7 +169,7 @@ def _jobs(cases: list[Case], sizes: list[int]) -> list[tuple[tuple[Case, ...], i
     :data:`TIMED_TOGETHER` whose twin runs too, timed with it."""
     by_name = {c.name: c for c in cases}
     pairs = TIMED_TOGETHER
-    twins = {pairs[c.name] for c in cases if c.name in pairs and pairs[c.name] in by_name}
+    twins = {pairs[c.name] for c in cases if pairs.get(c.name) in by_name}
     jobs = []
     for n in sizes:
         for case in cases:

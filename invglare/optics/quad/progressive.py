@@ -219,11 +219,12 @@ class ProgressiveQuads:
         # normalisation of invglare.optics.fraunhofer). An empty frame (a closed blink) has
         # power 0 and an image of zeros.
         power = float(np.sum(np.abs(raster)))
+        closed = power == 0.0  # start again from exact zeros
+        plan, amps, quads = (None, None, 0) if closed else frame_plan(parts, raster.shape)
+        if closed:
+            terms = None
         step, alpha, power = (np.asarray(v, self.dtype) for v in (self.step, self.alpha, power))
-        plan, amps, quads = frame_plan(parts, raster.shape)
         npix = self.output.npix
-        if not np.any(raster):
-            terms, plan = None, None  # closed: start again from exact zeros
         if plan is None:
             if terms is None:
                 side = npix // 2 + 1
