@@ -497,8 +497,11 @@ def test_vmap_over_pupil_diameters_equals_loop():
 
     batched = np.asarray(jax.vmap(t)(diameters))
     for i, d in enumerate(diameters):
+        # A weakly typed diameter, like the eye's own: the loop reuses the eye's compiled
+        # transmission (shared with the other tests) instead of compiling another.
+        single = np.asarray(t(jnp.asarray(float(d))))
         # float32 rounding differs between the batched and unbatched programs (measured 2e-6)
-        np.testing.assert_allclose(batched[i], np.asarray(t(d)), atol=1e-5)
+        np.testing.assert_allclose(batched[i], single, atol=1e-5)
 
 
 def test_vmap_over_obstacle_shifts_equals_loop():
@@ -698,6 +701,25 @@ def test_stamp_windows_also_hold_the_largest_of_other_values():
         _check_stamp_windows_also()
 
 
+def _with_windows_of(eye: EyeAperture, other: EyeAperture) -> EyeAperture:
+    """`eye` with the (static) stamp windows of `other`, the same eye at other values."""
+
+    def windows(c, o):
+        if c is None:
+            return None
+        return dataclasses.replace(
+            c, stamp_bound_mm=o.stamp_bound_mm, stamp_half_px=o.stamp_half_px
+        )
+
+    return dataclasses.replace(
+        eye,
+        upper_lashes=windows(eye.upper_lashes, other.upper_lashes),
+        lower_lashes=windows(eye.lower_lashes, other.lower_lashes),
+        particles=tuple(map(windows, eye.particles, other.particles)),
+        gratings=windows(eye.gratings, other.gratings),
+    )
+
+
 def _check_stamp_windows_also():
     grid = _grid()
     eye = _small_eye()
@@ -721,10 +743,16 @@ def _check_stamp_windows_also():
     expected = np.asarray(generous.transmission(grid))
     np.testing.assert_allclose(np.asarray(grown(fitted).transmission(grid)), expected, atol=1e-12)
     assert np.max(np.abs(np.asarray(grown(tight).transmission(grid)) - expected)) > 1e-3
-    # At the current sizes, tighter windows change nothing.
+    # At the current sizes, tighter windows change nothing: against the generous windows
+    # (those of the grown eye at headroom 3, larger than the current eye's at headroom 3),
+    # which reuses their compiled program instead of compiling a fourth window layout.
+    assert all(
+        getattr(generous, name).stamp_half_px > getattr(tight, name).stamp_half_px
+        for name in ("upper_lashes", "lower_lashes", "gratings")
+    )
     np.testing.assert_allclose(
         np.asarray(tight.transmission(grid)),
-        np.asarray(eye.with_stamp_windows(grid, headroom=3.0).transmission(grid)),
+        np.asarray(_with_windows_of(eye, generous).transmission(grid)),
         atol=1e-12,
     )
     with pytest.raises(ConfigError, match="same eye"):

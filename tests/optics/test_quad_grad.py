@@ -4,6 +4,8 @@ and through polygon vertices and the shapes' parameters on the polygon path."""
 
 from __future__ import annotations
 
+import functools
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -39,17 +41,22 @@ def test_gradient_through_quad_intensities():
         inside = (16, 16)
         for far in (True, False):
 
-            def loss(value, at, far=far):
-                r = raster.at[at].set(value)
+            def loss(value, i, j, far=far):
+                r = raster.at[i, j].set(value)
                 if far:
                     psf = quad_far_field(plan, r, 1 / NPIX, NPIX)
                 else:
                     psf = quad_near_field(plan, r, 1 / NPIX, 0.02, NPIX)
                 return jnp.sum(w * jnp.log(psf + 1e-6))
 
+            # The pixel is an argument (traced): one program for its values and one for its
+            # gradient serve both pixels, where a program per pixel compiled four.
+            value, grad = jax.jit(loss), jax.jit(jax.grad(loss))
             for at in (edge, inside):
-                f = jax.jit(lambda v, at=at: loss(v, at))
-                assert_grad_converges(f, float(raster[at]), 1e-4)
+                i, j = (jnp.asarray(k) for k in at)
+                x = float(raster[at])
+                f = functools.partial(value, i=i, j=j)
+                assert_grad_converges(f, x, 1e-4, grad=grad(jnp.float64(x), i, j))
 
 
 @pytest.mark.parametrize("method", ["quad", "polygon"])
@@ -70,16 +77,22 @@ def test_gradient_through_shape_parameters(method):
             method_options={"band": 2} if method == "quad" else None,
         )
         w = _weights()
-        for path, x0 in (
-            (lambda m: m.aperture.shapes[0].rotation_deg, 3.0),
-            (lambda m: m.aperture.shapes[0].diameter_mm, 3.6),
-        ):
 
-            @jax.jit
-            def loss(x, path=path):
-                return jnp.sum(w * jnp.log(eqx.tree_at(path, model, x)() + 1e-7))
+        # Both parameters are arguments of one program (each at its built value while the
+        # other varies: the same losses as a program per parameter), and one gradient
+        # program gives autodiff's value of both.
+        @jax.jit
+        def loss(rotation, diameter):
+            def leaves(m):
+                return m.aperture.shapes[0].rotation_deg, m.aperture.shapes[0].diameter_mm
 
-            assert_grad_converges(loss, x0, 2e-5 * max(1.0, x0))
+            return jnp.sum(w * jnp.log(eqx.tree_at(leaves, model, (rotation, diameter))() + 1e-7))
+
+        x0 = (jnp.float64(3.0), jnp.float64(3.6))
+        grads = jax.jit(jax.grad(loss, argnums=(0, 1)))(*x0)
+        for k in range(2):
+            f = (lambda x: loss(x, x0[1])) if k == 0 else (lambda x: loss(x0[0], x))
+            assert_grad_converges(f, float(x0[k]), 2e-5 * max(1.0, float(x0[k])), grad=grads[k])
 
 
 def test_gradient_through_polygon_vertices():
