@@ -29,8 +29,7 @@ if _cache != "off":
 
 #: The longest tests (minutes each under CI's two xdist workers, by ``--durations``), run
 #: first, longest first: started last, one of them kept a worker busy for minutes after the
-#: other had run out of tests. Under ``--dist loadscope`` (pyproject.toml) their modules are
-#: the first handed out, each whole to one worker.
+#: other had run out of tests.
 _LONGEST_FIRST = (
     "tests/fit/test_other_draws.py::test_a_daylight_eye_the_model_did_not_draw",
     "tests/fit/test_other_draws.py::test_a_night_eye_the_model_did_not_draw",

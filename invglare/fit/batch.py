@@ -103,9 +103,9 @@ class JaxWorkerSetup(WorkerPlugin):
     """A Dask worker plugin run once on every worker (also on those a nanny restarts).
 
     It points JAX's persistent compilation cache at `cache_dir` (programs compiled by one
-    worker or run are loaded, not compiled, by the next; JAX does not persist programs
-    holding host callbacks, such as the solves that report each step's loss, so those
-    are compiled once per worker process) and keeps XLA's freed buffers mapped. With
+    worker or run are loaded, not compiled, by the next, the solves among them: a batch's
+    solves keep their loss history inside the program and hold no host callback, which JAX
+    would not persist) and keeps XLA's freed buffers mapped. With
     `pin` (a LocalCluster's workers, named 0, 1, ...), it pins worker ``i`` to core
     ``i mod cores`` before JAX starts (:func:`pin_to_core`).
     """
