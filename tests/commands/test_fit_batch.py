@@ -70,7 +70,9 @@ def params(folder: Path) -> dict:
 
 
 # The Ctrl-C test comes first: its one worker compiles the fit into the workers' cache,
-# from which the other batches' workers load it (one compile, not two in parallel).
+# from which the other batches' workers load it (one compile, not two in parallel) when
+# they run after it (xdist may hand the tests to two pytest workers that run them side by
+# side; they share the cache folder, so the later one loads whatever is there).
 
 
 @pytest.mark.slow
