@@ -52,7 +52,8 @@ log = logging.getLogger("invglare")
 
 #: Test hook (:func:`pause_point`): a step of a folder swap (``"kept"``, ``"aside"``,
 #: ``"installed"``) or of a chain step (``"chain-step"``), optionally ``@k``, at which the
-#: process announces itself on stderr and sleeps, so a test can kill it there.
+#: process announces itself on stderr and sleeps, so a test can kill it there (or, with
+#: SIGUSR1, let it go on).
 PAUSE_ENV = "INVGLARE_TEST_PAUSE_AT"
 #: Seconds a run waits for a folder another run holds before refusing (default 0).
 LOCK_WAIT_ENV = "INVGLARE_LOCK_WAIT_S"
@@ -71,10 +72,29 @@ def pause_point(name: str) -> None:
     _PASSED[name] = _PASSED.get(name, 0) + 1
     at, _, nth = wanted.partition("@")
     if at == name and _PASSED[name] == int(nth or 1):
+        import signal
         import sys
+        import threading
 
+        main = threading.current_thread() is threading.main_thread()
+        if main:  # SIGUSR1 lets the run go on (a test that needs it held, not killed)
+            signal.signal(signal.SIGUSR1, _resume)
         print(f"invglare: test pause at {wanted} (pid {os.getpid()})", file=sys.stderr, flush=True)
-        time.sleep(3600)
+        try:
+            time.sleep(3600)
+        except _Resumed:
+            pass
+        finally:
+            if main:
+                signal.signal(signal.SIGUSR1, signal.SIG_DFL)
+
+
+class _Resumed(Exception):
+    """Raised by SIGUSR1's handler to end a test pause (a handler that returns would not)."""
+
+
+def _resume(signum: int, frame: object) -> None:
+    raise _Resumed
 
 
 def _temp_path_for(path: Path) -> Path:

@@ -642,11 +642,11 @@ class TemporalGlare(AbstractRasterModel, AbstractShiftInvariantModel):
 
         Energy per pixel at :attr:`pixel_scale_deg`, centre at ``npix // 2``: Y sums to
         the transmitted power (mm^2) with ``brightness="transmitted"``, to 1 with
-        ``"unit"``. `state` defaults to :meth:`init_state`.
+        ``"unit"``. `state` defaults to :meth:`init_state`. Compiled as one program
+        (run op by op, one 512² RGB frame compiled ~540 one-operation programs: 54 s of
+        CPU against 29 s); inside a caller's `jit`, `vmap` or `grad` it is inlined.
         """
-        state = self.init_state() if state is None else state
-        cf = self.psf_cf(self.sequence_constants(), state)
-        return cf[0] if not self.is_spectral else jnp.moveaxis(cf, 0, -1)
+        return _frame_psf(self, state)
 
     # ------------------------------------------------------------------ the model interface
 
@@ -798,6 +798,13 @@ def head_motion(
     if is_concrete(head) and not bool(jnp.all(jnp.isfinite(head))):
         raise InputDataError("head_acceleration_rad_s2 must be finite")
     return jnp.broadcast_to(head, (n_frames, 3)).astype(dtype)
+
+
+@eqx.filter_jit
+def _frame_psf(model: TemporalGlare, state: DynamicsState | None) -> Array:
+    state = model.init_state() if state is None else state
+    cf = model.psf_cf(model.sequence_constants(), state)
+    return cf[0] if not model.is_spectral else jnp.moveaxis(cf, 0, -1)
 
 
 def check_n_frames(n_frames: int) -> None:

@@ -3,7 +3,10 @@
 weighed by the scatter between simulated eyes) rerun on photos of eyes drawn with other
 seeds than the model config's (``invglare synth`` of ``data_synthetic/eye_*_other_draws.toml``:
 truths spread over the bounds, each photo with its own noise), as ``invglare fit-batch``
-fits them, and the committed batch reports of all eight eyes checked.
+fits them, and the committed batch reports of all eight eyes checked. The daylight config
+is refitted here in full; the night config is checked through its committed batch only
+(its refit, the same statistics machinery on a night eye, kept one of CI's two cores busy
+for ten minutes, and the suite has to stay inside CI's hour).
 
 What these fits recover (README, "Eyes the model did not draw"): the pupil, the grating
 spacing and the source; the daylight eye's lash count and mean angle only loosely, and not
@@ -92,18 +95,6 @@ def test_a_daylight_eye_the_model_did_not_draw(tmp_path) -> None:
     assert abs(v[COUNT] - t[COUNT]) < 2.0, (v[COUNT], t[COUNT])
     assert all(abs(pulls[p]) < 3.0 for p in (PUPIL, *SOURCE)), pulls
     assert "simulated eyes" in result.message
-
-
-@pytest.mark.slow
-def test_a_night_eye_the_model_did_not_draw() -> None:
-    """The first of the three bundled night eyes, refitted: pupil within 2 %, grating
-    spacing within 3 %, and every miss flagged."""
-    row = _population("eye_night_other_draws")[0]
-    result = _fit("eye_night_other_draws", row["photo"])
-    v, t = result.values, result.truth
-    _check_flags_tell(result.paths, v, result.stderr, t, result.flags)
-    assert abs(v[PUPIL] / t[PUPIL] - 1.0) < 0.02, (v[PUPIL], t[PUPIL])
-    assert abs(v[SPACING] / t[SPACING] - 1.0) < 0.03, (v[SPACING], t[SPACING])
 
 
 @pytest.mark.slow
