@@ -32,7 +32,6 @@ if _cache != "off":
 #: other had run out of tests.
 _LONGEST_FIRST = (
     "tests/fit/test_other_draws.py::test_a_daylight_eye_the_model_did_not_draw",
-    "tests/fit/test_other_draws.py::test_a_night_eye_the_model_did_not_draw",
     "tests/bench/test_bench.py::test_batch_benchmark_times_warm_clusters_of_1_and_2_workers",
     "tests/test_readme.py::test_readme_section_runs[Animated glare through a living eye "
     "(Ritschel et al.)]",
