@@ -61,11 +61,6 @@ def _setup(name: str, photo: str):
     return load_fit(config, config=photo_config(load_toml(config), job))
 
 
-def _fit(name: str, photo: str):
-    with helpers.x64():
-        return _setup(name, photo).fit()
-
-
 def _check_flags_tell(paths, values, stderr, truth, flags) -> dict[str, float]:
     """Each truth beyond 3 standard errors is flagged, and no other; returns the pulls."""
     pulls = {p: (values[p] - truth[p]) / stderr[p] for p in paths}
