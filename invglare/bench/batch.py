@@ -138,8 +138,8 @@ def run_batch_benchmark(
     }
     with tempfile.TemporaryDirectory(prefix="invglare-batch-bench-") as tmp:
         out = Path(tmp)
+        cache = out / "jax" if cache_dir is None else Path(cache_dir)
         for n in workers:
-            cache = out / "jax" if cache_dir is None else Path(cache_dir)
             with dask_client(None, n, cache_dir=cache) as client:
                 work = PhotoFits(config_path, tables, out / f"w{n}")
                 _on_each_worker(client, work, [warm])  # compiles on every worker

@@ -113,12 +113,15 @@ def _run(folder: Path, *args: str) -> subprocess.CompletedProcess:
                           env=_env(), capture_output=True, text=True, timeout=600)  # fmt: skip
 
 
-def _kill_at_pause(proc: subprocess.Popen) -> None:
+def _wait_for_pause(proc: subprocess.Popen) -> None:
     for line in proc.stderr:
         if "test pause at" in line:
-            break
-    else:
-        pytest.fail(f"the run ended without pausing (exit {proc.wait()})")
+            return
+    pytest.fail(f"the run ended without pausing (exit {proc.wait()})")
+
+
+def _kill_at_pause(proc: subprocess.Popen) -> None:
+    _wait_for_pause(proc)
     proc.send_signal(signal.SIGKILL)
     proc.wait(timeout=60)
 
@@ -183,11 +186,7 @@ def test_two_fits_into_one_folder_one_report_and_one_clear_refusal(problem):
     # while the second starts: on a loaded machine a first run left to go on had finished
     # before the second reached the lock, and the second fitted too.
     first = _invglare(problem, "fit", "fit.toml", "--no-progress", pause="kept")
-    for line in first.stderr:
-        if "test pause at" in line:
-            break
-    else:
-        pytest.fail(f"the first run ended without pausing (exit {first.wait()})")
+    _wait_for_pause(first)
     second = _run(problem, "fit", "fit.toml", "--no-progress")
     first.send_signal(signal.SIGUSR1)
     _, err = first.communicate(timeout=600)
