@@ -81,9 +81,8 @@ def pause_point(name: str) -> None:
             signal.signal(signal.SIGUSR1, _resume)
         print(f"invglare: test pause at {wanted} (pid {os.getpid()})", file=sys.stderr, flush=True)
         try:
-            time.sleep(3600)
-        except _Resumed:
-            pass
+            with contextlib.suppress(_Resumed):
+                time.sleep(3600)
         finally:
             if main:
                 signal.signal(signal.SIGUSR1, signal.SIG_DFL)
