@@ -53,6 +53,9 @@ PUPIL_SAMPLES = 128
 PX_PER_LAMBDA_OVER_D = NPIX // PUPIL_SAMPLES  # 4
 DIAMETER_MM = 4.0
 WAVELENGTH_NM = 550.0
+#: The same in metres, the unit of the peer codes.
+_DIAMETER_M = DIAMETER_MM * 1e-3
+_WAVELENGTH_M = WAVELENGTH_NM * 1e-9
 #: The flags of /proc/cpuinfo that say which vector units XLA, numpy and FFTW can use.
 VECTOR_FLAGS = (
     "sse4_2",
@@ -221,15 +224,17 @@ def _dlux(shape: str, method: str = "mft") -> PeerSetup | None:
     import jax
     import jax.numpy as jnp
 
-    d_m = DIAMETER_MM * 1e-3
-    lam_m = WAVELENGTH_NM * 1e-9
     # dLux's polygon has a corner along +x, as the reference.
-    aperture = dl.CircularAperture(d_m / 2) if shape == "airy" else dl.RegPolyAperture(6, d_m / 2)
+    aperture = (
+        dl.CircularAperture(_DIAMETER_M / 2)
+        if shape == "airy"
+        else dl.RegPolyAperture(6, _DIAMETER_M / 2)
+    )
     leaf = "radius" if shape == "airy" else "rmax"
     if method == "mft":
         system = dl.AngularOpticalSystem(
             wf_npixels=PUPIL_SAMPLES,
-            diameter=d_m,
+            diameter=_DIAMETER_M,
             layers=[("aperture", aperture)],
             psf_npixels=NPIX,
             psf_pixel_scale=math.degrees(pixel_scale_rad()) * 3600.0,
@@ -237,21 +242,21 @@ def _dlux(shape: str, method: str = "mft") -> PeerSetup | None:
 
         def psf(size):
             s = eqx.tree_at(lambda s: getattr(s.layers["aperture"], leaf), system, size)
-            return s.propagate_mono(lam_m)
+            return s.propagate_mono(_WAVELENGTH_M)
 
         how, centring = "AngularOpticalSystem (MFT)", "corner"
     else:
 
         def psf(size):
             ap = eqx.tree_at(lambda a: getattr(a, leaf), aperture, size)
-            wf = ap.apply(dl.Wavefront(lam_m, PUPIL_SAMPLES, d_m))
+            wf = ap.apply(dl.Wavefront(_WAVELENGTH_M, PUPIL_SAMPLES, _DIAMETER_M))
             return wf.propagate_FFT(pad=PX_PER_LAMBDA_OVER_D).psf
 
         how, centring = "Wavefront + propagate_FFT(pad=4)", "pixel"
     forward = eqx.filter_jit(psf)
     weights = jnp.asarray(_weights())
     grad = eqx.filter_jit(jax.grad(lambda size: jnp.sum(psf(size) * weights)))
-    r0 = jnp.float32(d_m / 2)
+    r0 = jnp.float32(_DIAMETER_M / 2)
     return PeerSetup(
         lambda: forward(r0),
         lambda: grad(r0),
@@ -266,24 +271,22 @@ def _hcipy(shape: str) -> PeerSetup | None:
         import hcipy as hc
     except ImportError:
         return None
-    d_m = DIAMETER_MM * 1e-3
-    lam_m = WAVELENGTH_NM * 1e-9
-    pupil = hc.make_pupil_grid(PUPIL_SAMPLES, d_m)
+    pupil = hc.make_pupil_grid(PUPIL_SAMPLES, _DIAMETER_M)
     # hcipy's hexagon has a corner along +y at angle 0; 30 deg puts one along +x.
     make = (
-        hc.make_circular_aperture(d_m)
+        hc.make_circular_aperture(_DIAMETER_M)
         if shape == "airy"
-        else hc.make_hexagonal_aperture(d_m, angle=np.pi / 6)
+        else hc.make_hexagonal_aperture(_DIAMETER_M, angle=np.pi / 6)
     )
     field = hc.evaluate_supersampled(make, pupil, 4)
     focal = hc.make_focal_grid(
         q=PX_PER_LAMBDA_OVER_D, num_airy=NPIX // (2 * PX_PER_LAMBDA_OVER_D),
-        spatial_resolution=lam_m / d_m,
+        spatial_resolution=_WAVELENGTH_M / _DIAMETER_M,
     )  # fmt: skip
     propagator = hc.FraunhoferPropagator(pupil, focal)
 
     def forward():
-        return np.asarray(propagator(hc.Wavefront(field, lam_m)).power.shaped)
+        return np.asarray(propagator(hc.Wavefront(field, _WAVELENGTH_M)).power.shaped)
 
     return PeerSetup(
         forward,
@@ -299,21 +302,19 @@ def _poppy(shape: str) -> PeerSetup | None:
         import poppy
     except ImportError:
         return None
-    d_m = DIAMETER_MM * 1e-3
-    lam_m = WAVELENGTH_NM * 1e-9
-    system = poppy.OpticalSystem(oversample=1, npix=PUPIL_SAMPLES, pupil_diameter=d_m)
+    system = poppy.OpticalSystem(oversample=1, npix=PUPIL_SAMPLES, pupil_diameter=_DIAMETER_M)
     # poppy's hexagon (side = corner radius) has a corner along +x.
     system.add_pupil(
-        poppy.CircularAperture(radius=d_m / 2)
+        poppy.CircularAperture(radius=_DIAMETER_M / 2)
         if shape == "airy"
-        else poppy.HexagonAperture(side=d_m / 2)
+        else poppy.HexagonAperture(side=_DIAMETER_M / 2)
     )
     system.add_detector(
         pixelscale=math.degrees(pixel_scale_rad()) * 3600.0, fov_pixels=NPIX, oversample=1
     )
 
     def forward():
-        return system.calc_psf(lam_m)[0].data
+        return system.calc_psf(_WAVELENGTH_M)[0].data
 
     return PeerSetup(
         forward,

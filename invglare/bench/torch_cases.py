@@ -31,6 +31,7 @@ from __future__ import annotations
 import argparse
 import os
 import sys
+from collections.abc import Callable
 
 import numpy as np
 
@@ -216,38 +217,38 @@ _PSF = "GlarePSF of the disk model (4 mm pupil, N/2 raster, FFT to N), diameter 
 _GLARE = "Glare of the disk model on one N x N RGB image: PSF + padded FFT convolution"
 _SAME = "the same jitted JAX programs called with JAX arrays (the twin of {})"
 
+
+def _twins(
+    name: str,
+    description: str,
+    make: Callable[[int], Callable[[], object] | None],
+    make_jax: Callable[[int], Callable[[], object] | None],
+    forward: str | None = None,
+) -> tuple[Case, Case]:
+    """A torch case and its JAX twin (`name` + ``_jax``), the pair :data:`PAIRS` compares."""
+    forward_jax = None if forward is None else f"{forward}_jax"
+    return (
+        Case(name, "pipeline", description, make, forward=forward),
+        Case(f"{name}_jax", "pipeline", _SAME.format(name), make_jax, forward=forward_jax),
+    )
+
+
 TORCH_CASES: tuple[Case, ...] = (
-    Case("torch_psf", "pipeline", f"{_PSF}, no gradient", _psf),
-    Case("torch_psf_jax", "pipeline", _SAME.format("torch_psf"), _psf_jax),
-    Case(
+    *_twins("torch_psf", f"{_PSF}, no gradient", _psf, _psf_jax),
+    *_twins(
         "torch_psf_grad",
-        "pipeline",
         f"{_PSF}: forward + backward of sum(w * PSF)",
         _psf_grad,
+        _psf_grad_jax,
         forward="torch_psf",
     ),
-    Case(
-        "torch_psf_grad_jax",
-        "pipeline",
-        _SAME.format("torch_psf_grad"),
-        _psf_grad_jax,
-        forward="torch_psf_jax",
-    ),
-    Case("torch_glare", "pipeline", f"{_GLARE}, no gradient", _glare),
-    Case("torch_glare_jax", "pipeline", _SAME.format("torch_glare"), _glare_jax),
-    Case(
+    *_twins("torch_glare", f"{_GLARE}, no gradient", _glare, _glare_jax),
+    *_twins(
         "torch_glare_grad",
-        "pipeline",
         f"{_GLARE}: forward + backward of sum(w * out), image and diameter",
         _glare_grad,
-        forward="torch_glare",
-    ),
-    Case(
-        "torch_glare_grad_jax",
-        "pipeline",
-        _SAME.format("torch_glare_grad"),
         _glare_grad_jax,
-        forward="torch_glare_jax",
+        forward="torch_glare",
     ),
 )
 

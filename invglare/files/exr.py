@@ -149,6 +149,16 @@ def first_flagged(mask: np.ndarray, channels: Sequence[str] = ()) -> str:
     return text
 
 
+def nonfinite_pixels(values: np.ndarray, channels: Sequence[str] = ()) -> tuple[int, str] | None:
+    """How many pixels are NaN or Inf and ``(n NaN, m Inf), first at ...``, None where all
+    are finite: the count and wording every reader's non-finite error shares."""
+    bad = ~np.isfinite(values)
+    if not bad.any():
+        return None
+    n_bad, n_nan = int(bad.sum()), int(np.isnan(values).sum())
+    return n_bad, f"({n_nan} NaN, {n_bad - n_nan} Inf), first at {first_flagged(bad, channels)}"
+
+
 def validate_pixels(
     path: Path, data: np.ndarray, channels: Sequence[str], *, allow_negative: bool
 ) -> None:
@@ -159,14 +169,12 @@ def validate_pixels(
     """
     planes = data[..., None] if data.ndim == 2 else data
     for c, name in enumerate(channels):
-        plane = planes[..., c]
-        bad = ~np.isfinite(plane)
-        if bad.any():
-            n_nan = int(np.isnan(plane).sum())
+        found = nonfinite_pixels(planes[..., c])
+        if found is not None:
+            n_bad, detail = found
             raise InputDataError(
-                f"{path}: channel {name!r} has {int(bad.sum())} non-finite pixel(s) "
-                f"({n_nan} NaN, {int(bad.sum()) - n_nan} Inf), first at "
-                f"{first_flagged(bad)}; expected finite values"
+                f"{path}: channel {name!r} has {n_bad} non-finite pixel(s) {detail}; "
+                "expected finite values"
             )
     if allow_negative:
         return

@@ -172,6 +172,22 @@ def _eye(eye: dict, masking: str, colour: str, output: dict, spectrum: dict) -> 
     return {"model": table, "output": output, "spectrum": spectrum}
 
 
+def _temporal(eye: dict, output: dict, spectrum: dict, **model: Any) -> dict[str, Any]:
+    """A temporal-model case, laid out as :func:`_aperture` and :func:`_eye` lay out theirs."""
+    table = {"kind": "temporal", **model, "eye": eye}
+    return {"model": table, "output": output, "spectrum": spectrum}
+
+
+def _lens_nucleus(n: int, radius_mean_mm: float) -> dict[str, Any]:
+    """Lens-nucleus particles, `n` expected and at most `n`: the haze both temporal cases use."""
+    return {
+        "region": "lens_nucleus",
+        "count": float(n),
+        "n_max": n,
+        "radius_mean_mm": radius_mean_mm,
+    }
+
+
 #: The suite. Output grids are at most 128 x 128 so that the whole suite runs in well
 
 CASES: tuple[Case, ...] = (
@@ -290,41 +306,31 @@ CASES: tuple[Case, ...] = (
         "temporal eye (Ritschel): frame 0 of key 3 adapted to 10 cd/m^2, lids, lashes, lens "
         "particles and gratings, E at an effective 1200 mm (575 nm), unit energy, 8 scaled "
         "copies 400-700 nm",
-        {
-            "model": {
-                "kind": "temporal",
-                "aperture_npix": 128,
-                "fresnel": "effective",
-                "fresnel_distance_mm": 1200.0,
-                "brightness": "unit",
-                "seed": 3,
-                "field_luminance_cd_m2": 10.0,
-                "eye": {
-                    "seed": 5,
-                    "pupil": {"diameter_mm": 6.0},
-                    "lids": _LIDS,
-                    "lashes_upper": _LASHES_UPPER,
-                    "particles": [
-                        {
-                            "region": "lens_nucleus",
-                            "count": 40.0,
-                            "n_max": 40,
-                            "radius_mean_mm": 0.04,
-                        },
-                    ],
-                    # Resolved by the 64 um raster (80 um lines aliased on it, and are
-                    # refused now); the first order, 0.07-0.13 deg, inside the field.
-                    "gratings": {
-                        "count": 12.0,
-                        "n_max": 12,
-                        "spacing_mm": 0.32,
-                        "line_thickness_mm": 0.08,
-                    },
+        _temporal(
+            {
+                "seed": 5,
+                "pupil": {"diameter_mm": 6.0},
+                "lids": _LIDS,
+                "lashes_upper": _LASHES_UPPER,
+                "particles": [_lens_nucleus(40, 0.04)],
+                # Resolved by the 64 um raster (80 um lines aliased on it, and are
+                # refused now); the first order, 0.07-0.13 deg, inside the field.
+                "gratings": {
+                    "count": 12.0,
+                    "n_max": 12,
+                    "spacing_mm": 0.32,
+                    "line_thickness_mm": 0.08,
                 },
             },
-            "output": {"npix": 128},
-            "spectrum": {"wavelengths_nm": "400:700:8"},
-        },
+            {"npix": 128},
+            {"wavelengths_nm": "400:700:8"},
+            aperture_npix=128,
+            fresnel="effective",
+            fresnel_distance_mm=1200.0,
+            brightness="unit",
+            seed=3,
+            field_luminance_cd_m2=10.0,
+        ),
         tolerance=FRESNEL_TOLERANCE,
     ),
     Case(
@@ -332,29 +338,19 @@ CASES: tuple[Case, ...] = (
         "temporal eye with the paper's defaults: eq. 3's E at the eye's 17 mm (alias-free, "
         "the pupil's Fresnel shadow on the retina), brightness = K (transmitted power), "
         "lids and lens particles, 4 scaled copies 450-650 nm",
-        {
-            "model": {
-                "kind": "temporal",
-                "aperture_npix": 64,
-                "seed": 3,
-                "field_luminance_cd_m2": 1.0,
-                "eye": {
-                    "seed": 5,
-                    "pupil": {"diameter_mm": 5.0},
-                    "lids": _LIDS,
-                    "particles": [
-                        {
-                            "region": "lens_nucleus",
-                            "count": 30.0,
-                            "n_max": 30,
-                            "radius_mean_mm": 0.1,
-                        },
-                    ],
-                },
+        _temporal(
+            {
+                "seed": 5,
+                "pupil": {"diameter_mm": 5.0},
+                "lids": _LIDS,
+                "particles": [_lens_nucleus(30, 0.1)],
             },
-            "output": {"npix": 128},
-            "spectrum": {"wavelengths_nm": "450:650:4"},
-        },
+            {"npix": 128},
+            {"wavelengths_nm": "450:650:4"},
+            aperture_npix=64,
+            seed=3,
+            field_luminance_cd_m2=1.0,
+        ),
         tolerance=FRESNEL_TOLERANCE,
     ),
     Case(

@@ -38,7 +38,7 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
 from invglare.errors import ConfigError, InputDataError
-from invglare.files.exr import first_flagged
+from invglare.files.exr import first_flagged, nonfinite_pixels
 
 __all__ = [
     "SCENES",
@@ -414,12 +414,11 @@ def validate_scene(image: ArrayLike, *, name: str = "scene") -> np.ndarray:
         raise InputDataError(f"{name} must hold real numbers; got dtype {arr.dtype}")
     channels = ("R", "G", "B") if arr.ndim == 3 and arr.shape[-1] == 3 else ()
 
-    bad = ~np.isfinite(arr)
-    if bad.any():
-        n_nan = int(np.isnan(arr).sum())
+    found = nonfinite_pixels(arr, channels)
+    if found is not None:
+        n_bad, detail = found
         raise InputDataError(
-            f"{name} has {int(bad.sum())} non-finite pixel value(s) ({n_nan} NaN, "
-            f"{int(bad.sum()) - n_nan} Inf), first at {first_flagged(bad, channels)}; "
+            f"{name} has {n_bad} non-finite pixel value(s) {detail}; "
             "expected finite linear values (cd/m^2)"
         )
     neg = arr < 0
