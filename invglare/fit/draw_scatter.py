@@ -201,7 +201,11 @@ def scatter_options(
 
 
 def scatter_covariance(
-    fn: ResidualFn, latent: Float[Array, " p"], n_draws: int, seed: int = 1
+    fn: ResidualFn,
+    latent: Float[Array, " p"],
+    n_draws: int,
+    seed: int = 1,
+    jacobian: np.ndarray | None = None,
 ) -> np.ndarray:
     """Covariance of the latent estimate that the scatter between eyes and the noise cause.
 
@@ -213,13 +217,14 @@ def scatter_covariance(
     (the offsets' uncertainty), is what the estimate scatters by between eyes with the
     same parameters:
     correlations between bins and between views included, whatever the whitening left.
-    A `seed` other than the scatter's own keeps the two simulations independent.
+    A `seed` other than the scatter's own keeps the two simulations independent;
+    `jacobian`, `fn`'s at `latent` where the caller has it (the fit's solve kept it).
 
     **Returns:** the ``(p, p)`` covariance of the latent values.
     """
     from invglare.fit.solve import _jacobian_and_residuals
 
-    jac, _ = _jacobian_and_residuals(fn, latent)
+    jac = _jacobian_and_residuals(fn, latent)[0] if jacobian is None else jacobian
     jac = np.asarray(jac, dtype=np.float64)
     noisy, clean = _simulate(fn, latent, int(n_draws), seed)
     n = noisy[0].shape[0]

@@ -141,6 +141,9 @@ class FitResult:
     objective: str = ""
     flags: list[dict[str, Any]] = dataclasses.field(default_factory=list)
     optimum_check: dict[str, Any] | None = None
+    #: The residuals' Jacobian in the latent space at the result, where the solve kept it
+    #: (see :func:`invglare.fit.fit`); not saved.
+    latent_jacobian: np.ndarray | None = dataclasses.field(default=None, repr=False, compare=False)
     residual_map: np.ndarray | None = dataclasses.field(default=None, compare=False, repr=False)
     model_image: np.ndarray | None = dataclasses.field(default=None, compare=False, repr=False)
 

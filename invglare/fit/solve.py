@@ -228,6 +228,9 @@ class _Config:
     max_steps: int
     record: bool  # the loss history, in the program
     live: bool  # progress reports from host callbacks while the solve runs
+    # The Jacobian at the solution, from the solver's last accepted step (LM only): the
+    # covariance then needs no program of its own.
+    keep_jacobian: bool = False
 
 
 def _status_code(result) -> Array:
@@ -293,9 +296,10 @@ def jacobian_columns(fn: ResidualFn, latent: Array, args: Any = None) -> tuple[A
 
 
 def _solve_one(fn: ResidualFn, y0: Array, start: Array, run: Array, cfg: _Config):
-    """One start's solve: ``(value, loss, status code, steps, loss history)``; the history
-    is the loss of the last accepted point at each step, `(max_steps,)` (NaN past the last
-    step; empty unless `cfg.record`)."""
+    """One start's solve: ``(value, loss, status code, steps, loss history, Jacobian)``; the
+    history is the loss of the last accepted point at each step, `(max_steps,)` (NaN past
+    the last step; empty unless `cfg.record`), the Jacobian the residuals' at `value`
+    (``(0, p)`` unless `cfg.keep_jacobian`)."""
     verbose = _Recorder(run, start) if cfg.live else False
     if cfg.solver == "lm":
         residuals = jacobian_by_columns(fn)
@@ -321,7 +325,22 @@ def _solve_one(fn: ResidualFn, y0: Array, start: Array, run: Array, cfg: _Config
     sol = solve(objective, solver, y0, has_aux=True, max_steps=cfg.max_steps, throw=False)
     r = fn(sol.value, None)
     history = sol.stats["losses"] if cfg.record else jnp.zeros(0, r.dtype)
-    return sol.value, jnp.sum(r * r), _status_code(sol.result), sol.stats["num_steps"], history
+    jac = jnp.zeros((0, y0.shape[0]), r.dtype)
+    if cfg.keep_jacobian and cfg.solver == "lm":
+        jac = _final_jacobian(sol.state[0] if cfg.record else sol.state)
+    code, steps = _status_code(sol.result), sol.stats["num_steps"]
+    return sol.value, jnp.sum(r * r), code, steps, history, jac
+
+
+def _final_jacobian(state) -> Array:
+    """The Jacobian at a Levenberg–Marquardt solve's result, ``(n, p)``.
+
+    Optimistix keeps the linearisation of the last accepted point (which the solve returns)
+    in its state; through :func:`jacobian_by_columns` that is ``t -> J @ t`` with `J`
+    already computed, so materialising it is a product with the identity, not another pass
+    of the model.
+    """
+    return state.f_info.jac.as_matrix()
 
 
 def _status_message(code: int, n_steps: int, loss: float, cfg: _Config) -> tuple[bool, str]:
@@ -441,9 +460,9 @@ def _run_stage(
     cfg: _Config,
     batch: str,
     sink: Callable | None,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, float, float]:
-    """Solve from every row of `y0s`; returns values, losses, codes, steps, recorded losses
-    (:func:`_solve_one`), compile s, solve s."""
+) -> tuple[np.ndarray, ...]:
+    """Solve from every row of `y0s`; returns values, losses, codes, steps, recorded losses,
+    final Jacobians (:func:`_solve_one`), compile s, solve s."""
     starts = jnp.arange(y0s.shape[0], dtype=jnp.int32)
     run_id = next(_NEXT_RUN)
     run = jnp.asarray(run_id, dtype=jnp.int32)
@@ -454,7 +473,7 @@ def _run_stage(
             compiled, t_compile = _compile(fn, y0s, starts, run, cfg, batch)
             t1 = time.perf_counter()
             out = jax.block_until_ready(compiled(fn, y0s, starts, run, cfg))
-            values, losses, codes, steps, histories = (np.asarray(o) for o in out)
+            values, losses, codes, steps, histories, jacs = (np.asarray(o) for o in out)
         else:
             compiled, t_compile = _compile(fn, y0s[0], starts[0], run, cfg, batch)
             t1 = time.perf_counter()
@@ -462,15 +481,15 @@ def _run_stage(
                 jax.block_until_ready(compiled(fn, y0s[k], starts[k], run, cfg))
                 for k in range(y0s.shape[0])
             ]
-            values, losses, codes, steps, histories = (
-                np.stack([np.asarray(o[j]) for o in outs]) for j in range(5)
+            values, losses, codes, steps, histories, jacs = (
+                np.stack([np.asarray(o[j]) for o in outs]) for j in range(6)
             )
         # Callbacks are asynchronous: make sure every report has arrived.
         jax.effects_barrier()
         t2 = time.perf_counter()
     finally:
         _SINKS.pop(run_id, None)
-    return values, losses, codes, steps, histories, t_compile, t2 - t1
+    return values, losses, codes, steps, histories, jacs, t_compile, t2 - t1
 
 
 def _run_stage_many(
@@ -479,7 +498,7 @@ def _run_stage_many(
     cfg: _Config,
     batch: str,
     sinks: Sequence[Callable | None],
-) -> list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, float, float]]:
+) -> list[tuple[np.ndarray, ...]]:
     """:func:`_run_stage` for several photos in one compiled call (vmapped over photos).
 
     Each photo's outputs come back as :func:`_run_stage` returns them; the compile and
@@ -499,7 +518,7 @@ def _run_stage_many(
             compiled, t_compile = _compile(fn, y0, starts, runs, cfg, "vmap*")
             t1 = time.perf_counter()
             out = jax.block_until_ready(compiled(fn, y0, starts, runs, cfg))
-            values, losses, codes, steps, histories = (np.asarray(o) for o in out)
+            values, losses, codes, steps, histories, jacs = (np.asarray(o) for o in out)
         else:
             compiled, t_compile = _compile(fn, y0[:, 0], starts[0], runs, cfg, "loop*")
             t1 = time.perf_counter()
@@ -507,8 +526,8 @@ def _run_stage_many(
                 jax.block_until_ready(compiled(fn, y0[:, j], starts[j], runs, cfg))
                 for j in range(y0.shape[1])
             ]
-            values, losses, codes, steps, histories = (
-                np.stack([np.asarray(o[m]) for o in outs], axis=1) for m in range(5)
+            values, losses, codes, steps, histories, jacs = (
+                np.stack([np.asarray(o[m]) for o in outs], axis=1) for m in range(6)
             )
         jax.effects_barrier()
         t2 = time.perf_counter()
@@ -516,7 +535,10 @@ def _run_stage_many(
         for run_id in run_ids:
             _SINKS.pop(run_id, None)
     t_c, t_s = t_compile / k, (t2 - t1) / k
-    return [(values[j], losses[j], codes[j], steps[j], histories[j], t_c, t_s) for j in range(k)]
+    return [
+        (values[j], losses[j], codes[j], steps[j], histories[j], jacs[j], t_c, t_s)
+        for j in range(k)
+    ]
 
 
 def stack_modules(modules: Sequence[Any]) -> Any:
@@ -570,10 +592,18 @@ def _predict(fn: ResidualFn, latent: Array) -> tuple[Array, Array, Array, Array]
 
 
 def _covariance(
-    fn: ResidualFn, latent: Array, space: ParameterSpace, scale: str | float
+    fn: ResidualFn,
+    latent: Array,
+    space: ParameterSpace,
+    scale: str | float,
+    jacobian: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray, float, int, float, str]:
-    """Physical covariance, stderr, loss, effective residual count, s**2 and a note."""
-    jac, _ = _information(fn, latent)
+    """Physical covariance, stderr, loss, effective residual count, s**2 and a note.
+
+    `jacobian`: the scoring form's Jacobian at `latent` where the caller has it (a solve
+    of residuals that are their own scoring form), else it is computed.
+    """
+    jac = _information(fn, latent)[0] if jacobian is None else jacobian
     jac = np.asarray(jac, dtype=np.float64)
     r = np.asarray(_predict(fn, latent)[3], dtype=np.float64)
     loss = float(r @ r)
@@ -901,6 +931,10 @@ class _FitRun:
                 )
         # (factor, residuals) of each stage; a first pass in a stabilised domain ends on the
         # likelihood, from the best result, at full resolution.
+        if solver == "lm" and fn_final.scores_itself:
+            # Its covariance is then the solve's own Jacobian (see `_Config`). Not tied to
+            # `diagnostics`: a seed round and the final fit still share one program.
+            self.cfg = dataclasses.replace(self.cfg, keep_jacobian=True)
         self.plan = [(int(f), fn_full if f == 1 else fn_full.with_factor(int(f))) for f in factors]
         if self.first_pass:
             self.plan.append((1, fn_final))
@@ -924,7 +958,7 @@ class _FitRun:
             s, len(self.plan), factor, n, self.progress)  # fmt: skip
         return fn, self.stage_y0, live
 
-    def stage_done(self, s, values, losses, codes, steps, recorded, t_c, t_s) -> None:
+    def stage_done(self, s, values, losses, codes, steps, recorded, jacobians, t_c, t_s) -> None:
         """Book stage `s`'s solves; pick the starts of the next stage."""
         self.compile_s += t_c
         self.solve_s += t_s
@@ -956,7 +990,7 @@ class _FitRun:
             record["likelihood"] = fn is self.fn_final
         self.stages.append(record)
         self.steps_so_far = self.steps_so_far + steps.astype(int)
-        self.last = (values, order, statuses)
+        self.last = (values, order, statuses, jacobians)
         if s + 1 < len(self.plan):
             # The next, finer stage starts from the best few of this one; the likelihood's
             # refinement after a first pass from the best one.
@@ -968,11 +1002,12 @@ class _FitRun:
 
     def result(self) -> FitResult:
         """The result after the last stage: the best start, its covariance, images and flags."""
-        values, order, statuses = self.last
+        values, order, statuses, jacobians = self.last
         space, fn_full, fn_final, stages = self.space, self.fn_full, self.fn_final, self.stages
         truth = self.truth
         k = int(order[0])
         best_latent = jnp.asarray(values[k])
+        jacobian = jacobians[k] if self.cfg.keep_jacobian else None
         best_start = int(self.origin[k])
         n_steps_total = int(self.steps_so_far[k])
         converged, message = statuses[k]
@@ -988,7 +1023,7 @@ class _FitRun:
         optimum = None
         if self.diagnostics:
             cov, stderr, loss, n_res, s2, note = _covariance(
-                fn_final, best_latent, space, self.covariance_scale
+                fn_final, best_latent, space, self.covariance_scale, jacobian
             )
             expected, predicted, variance, _ = (
                 np.asarray(a) for a in _predict(fn_final, best_latent)
@@ -1065,6 +1100,7 @@ class _FitRun:
             objective=objective,
             flags=flags,
             optimum_check=None if optimum is None else _plain_check(optimum),
+            latent_jacobian=jacobian,
         )
 
 

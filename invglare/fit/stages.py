@@ -418,7 +418,7 @@ def _scatter_errors(result: FitResult, space, template, target, views, options) 
     fn = make_residual_fn(space, template, target, views, view_options=options)
     values = jnp.asarray([result.values[p] for p in space.paths])
     latent = space.to_latent(values)
-    cov_z = scatter_covariance(fn, latent, _draws(options))
+    cov_z = scatter_covariance(fn, latent, _draws(options), jacobian=result.latent_jacobian)
     d = np.asarray(space.jacobian_diag(latent), dtype=np.float64)
     cov = d[:, None] * cov_z * d[None, :]
     cols = [result.paths.index(p) for p in space.paths]

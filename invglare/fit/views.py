@@ -606,6 +606,12 @@ def build_view(
         raise ConfigError(f"view {name!r}: {err}") from None
 
 
+def _scored_apart(view: AbstractView) -> bool:
+    """A pixel view of the likelihood at full resolution: the information comes from its
+    scoring form, not from its deviance residuals (:meth:`ResidualFn.information_form`)."""
+    return isinstance(view, PixelView) and view.likelihood and view.factor == 1
+
+
 class ResidualFn(eqx.Module):
     """Residuals of a fit as an optimistix function ``fn(latent, args) -> vector``.
 
@@ -767,12 +773,15 @@ class ResidualFn(eqx.Module):
         """The likelihood's pixel views in their scoring form (see :func:`pixel_residuals`):
         ``J^T J`` is then the Fisher information plus the other views' Gauss–Newton terms."""
         views = tuple(
-            dataclasses.replace(v, information=True)
-            if isinstance(v, PixelView) and v.likelihood and v.factor == 1
-            else v
-            for v in self.views
+            dataclasses.replace(v, information=True) if _scored_apart(v) else v for v in self.views
         )
         return dataclasses.replace(self, views=views)
+
+    @property
+    def scores_itself(self) -> bool:
+        """Whether :meth:`information_form` is these residuals unchanged (no view of the
+        pixel likelihood at full resolution): their own Jacobian gives the information."""
+        return not any(_scored_apart(v) for v in self.views)
 
     def objective(self) -> str:
         """What the residuals' sum of squares is, in words (for a report)."""

@@ -40,7 +40,12 @@ from invglare.fit import (
     soft_clip,
     valid_paths,
 )
-from invglare.fit.solve import _covariance, jacobian_by_columns, jacobian_columns
+from invglare.fit.solve import (
+    _covariance,
+    _jacobian_and_residuals,
+    jacobian_by_columns,
+    jacobian_columns,
+)
 from invglare.models.aperture_psf import AperturePSF
 
 DIAMETER = "model.aperture.shapes[0].diameter_mm"
@@ -623,6 +628,26 @@ def test_vmap_over_starts_equals_loop():
     # The early, well-conditioned part of each trajectory is the same.
     for ha, hb in zip(a.loss_history[0], b.loss_history[0], strict=True):
         np.testing.assert_allclose(ha[:3], hb[:3], rtol=1e-10)
+
+
+def test_a_fit_of_statistics_keeps_the_solves_jacobian_for_its_covariance():
+    """Residuals that are their own scoring form (no pixel likelihood): the solver's last
+    accepted linearisation is the Jacobian at the result, so the covariance compiles no
+    program of its own. It equals the Jacobian computed afresh there (1e-9), in both batch
+    modes, and gives the same covariance; a fit of the pixel likelihood keeps none."""
+    space, template, target = toy_problem()
+    views = {"radial": 1.0}
+    fn = make_residual_fn(space, template, target, views)
+    for batch in ("vmap", "loop"):
+        res = fit(space, template, target, views, n_starts=2, key=jax.random.key(3), batch=batch)
+        z = space.to_latent(jnp.asarray([res.values[p] for p in space.paths]))
+        fresh = np.asarray(_jacobian_and_residuals(fn, z)[0])
+        assert res.latent_jacobian.shape == fresh.shape == (fn(z, None).shape[0], space.size)
+        np.testing.assert_allclose(
+            res.latent_jacobian, fresh, rtol=1e-9, atol=1e-12 * np.abs(fresh).max()
+        )
+        np.testing.assert_allclose(res.covariance, _covariance(fn, z, space, "auto")[0], rtol=1e-8)
+    assert fit(space, template, target, {"pixels": 1.0}, n_starts=1).latent_jacobian is None
 
 
 def test_max_steps_message_and_result_flag():
