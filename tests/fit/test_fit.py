@@ -630,6 +630,7 @@ def test_vmap_over_starts_equals_loop():
         np.testing.assert_allclose(ha[:3], hb[:3], rtol=1e-10)
 
 
+@pytest.mark.slow
 def test_a_fit_of_statistics_keeps_the_solves_jacobian_for_its_covariance():
     """Residuals that are their own scoring form (no pixel likelihood): the solver's last
     accepted linearisation is the Jacobian at the result, so the covariance compiles no
