@@ -326,7 +326,7 @@ def _solve_one(fn: ResidualFn, y0: Array, start: Array, run: Array, cfg: _Config
     r = fn(sol.value, None)
     history = sol.stats["losses"] if cfg.record else jnp.zeros(0, r.dtype)
     jac = jnp.zeros((0, y0.shape[0]), r.dtype)
-    if cfg.keep_jacobian and cfg.solver == "lm":
+    if cfg.keep_jacobian:  # set for Levenberg–Marquardt only
         jac = _final_jacobian(sol.state[0] if cfg.record else sol.state)
     code, steps = _status_code(sol.result), sol.stats["num_steps"]
     return sol.value, jnp.sum(r * r), code, steps, history, jac
@@ -930,12 +930,12 @@ class _FitRun:
                     "and read noise from flat and dark frames and fix them, or sample them "
                     "with `invglare sample`, whose posterior is the likelihood itself"
                 )
-        # (factor, residuals) of each stage; a first pass in a stabilised domain ends on the
-        # likelihood, from the best result, at full resolution.
         if solver == "lm" and fn_final.scores_itself:
             # Its covariance is then the solve's own Jacobian (see `_Config`). Not tied to
             # `diagnostics`: a seed round and the final fit still share one program.
             self.cfg = dataclasses.replace(self.cfg, keep_jacobian=True)
+        # (factor, residuals) of each stage; a first pass in a stabilised domain ends on the
+        # likelihood, from the best result, at full resolution.
         self.plan = [(int(f), fn_full if f == 1 else fn_full.with_factor(int(f))) for f in factors]
         if self.first_pass:
             self.plan.append((1, fn_final))
