@@ -545,9 +545,11 @@ def render(measured: dict, records: list[dict], meta: dict, sizes) -> str:
         "",
         "A frame of the moving shadow with the quadtrees of its difference, as the paper "
         "builds them (green: light disoccluded, red: newly occluded). invglare evaluates a "
-        "sparse difference (at most "
-        f"{PIXEL_QUADS_UP_TO} non-zero pixels) pixel by pixel instead, one 1x1 quad each "
-        "(building the two quadtrees cost more than it saved: "
+        "difference of at most "
+        f"{PIXEL_QUADS_UP_TO} non-zero pixels pixel by pixel instead, one 1x1 quad each, "
+        "summed into a dense matrix of the crop's rows and columns (the two quadtrees "
+        "cost more than they saved, and their quads of many sizes have more distinct "
+        "intervals than the crop has rows: "
         "`invglare.optics.quad.progressive.difference_quads`), so the quads per update "
         "below are pixels. Over 60 frames (256² raster, 512² output, float32):",
         "",

@@ -75,6 +75,30 @@ def test_difference_quads_add_up_to_the_difference(pixel_quads_up_to, monkeypatc
     np.testing.assert_allclose(painted, expected, rtol=0, atol=1e-12)
 
 
+@pytest.mark.parametrize("near", [False, True])
+def test_dense_and_gathered_inner_sums_give_the_same_update(near, monkeypatch):
+    """A frame's quads (a random soft crop as pixels) summed into a dense matrix or
+    gathered quad by quad (the choice forced both ways) give the same parity terms, far
+    and near field, to 1e-5 of the largest (float32)."""
+    from invglare.optics.quad import plan as plan_module
+
+    rng = np.random.default_rng(3)
+    crop = np.where(rng.random((20, 24)) < 0.5, rng.normal(size=(20, 24)), 0.0)
+    parts = progressive.difference_quads(crop, 0, (30, 9))
+    dyn, amps, _ = progressive.frame_plan(parts, (64, 64))
+    step, alpha = np.float32(0.5), np.float32(0.01 if near else 0.0)
+    terms = {}
+    for per_quad in (0, 10**9):
+        monkeypatch.setattr(plan_module, "DENSE_PER_QUAD", per_quad)
+        assert dyn.dense_inner == bool(per_quad)
+        args = (dyn, np.asarray(amps, np.float32), step, alpha, 64, near)
+        terms[per_quad] = [np.asarray(t) for t in progressive._update(*args)]
+    scale = max(float(np.max(np.abs(t))) for t in terms[0])
+    assert scale > 0
+    for dense, gathered in zip(terms[10**9], terms[0], strict=True):
+        assert np.max(np.abs(dense - gathered)) < 1e-5 * scale
+
+
 def test_moving_shadow_is_the_anti_aliased_disk_it_describes():
     """Each frame is the aperture times ``1 - clip(radius + 0.5 - r, 0, 1)`` over the whole
     raster (computed near the shadow only), also where the shadow leaves the raster."""

@@ -273,6 +273,35 @@ def test_square_near_field_by_the_lattice_table_matches_fresnel_integrals(fresne
     assert np.max(np.abs(psf - whole)) < 1e-12 * ref.max()
 
 
+@pytest.mark.parametrize(
+    ("name", "symmetric"), [("whirl", False), ("heptagon", True), ("circle", True)]
+)
+@pytest.mark.parametrize("ratio", [None, 1.0])
+def test_near_field_by_corners_equals_the_sum_over_quad_intervals(name, symmetric, ratio):
+    """float64, the paper's anti-aliased apertures at 64 px: the near field's parity terms
+    summed over the quads' corners (edge kernel, dense corner matrix: what
+    ``quad_near_field`` evaluates) equal the sum over the quads' intervals (interval kernel,
+    per-quad gathers) to 1e-12 of the largest term, with the mirrors (skipped terms) and
+    without, by the whole table and by the lattice table (ratio 1: the raster's own grid)."""
+    from invglare.optics.quad.nearfield import corner_plan, fresnel_kernel, near_field_terms
+    from invglare.optics.quad.transform import quadrant_terms
+
+    with x64():
+        raster = np.asarray(paper_raster(name, 64), np.float64)
+        plan = _plan(raster, symmetric=symmetric)
+        assert (plan.mirror_x or plan.mirror_y) == symmetric
+        corners, source, factor = corner_plan(plan)
+        assert corners.dense_inner and corners.n_rows <= 33 and corners.n_cols <= 33
+        assert source.size == 4 * plan.quad_row.size and set(np.abs(factor)) == {1.0}
+        amps, _ = plan_amplitudes(plan, jnp.asarray(raster))
+        alpha = 4.0 * 10.0 / 60.0**2
+        by_corners = near_field_terms(plan, amps, alpha, alpha, 96, ratio=ratio)
+        by_quads = quadrant_terms(plan, fresnel_kernel, amps, alpha, 96, alpha)
+    scale = max(float(np.max(np.abs(t))) for t in by_quads)
+    for got, want in zip(by_corners, by_quads, strict=True):
+        assert np.max(np.abs(np.asarray(got) - np.asarray(want))) < 1e-12 * scale
+
+
 def test_lattice_table_is_used_at_its_ratio_only(monkeypatch):
     """With the lattice's evaluation spoilt on purpose (its Fresnel integrals doubled), the
     field changes where the lattice is used (its ratio, within float32 rounding) and not

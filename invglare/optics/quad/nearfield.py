@@ -16,11 +16,14 @@ transforms need the chirp under Nyquist, which :func:`~invglare.optics.propagato
 make_propagator` enforces for them).
 
 **Two passes** (the paper's separable evaluation): every interval edge is a pixel boundary,
-so ``E`` is tabulated once per distinct edge and output frequency (the paper's 1-D table),
-each interval's ``g`` is a difference of two table rows (first pass, per axis), and the
-quads are combined by the matrix products of :mod:`.transform` (second pass). Mirror
-symmetries of the aperture are used as in the far field (there is no Hermitian symmetry
-here: the chirp is complex).
+so ``E`` is tabulated once per distinct edge and output frequency (the paper's 1-D table,
+first pass, per axis), and the quads are combined by the matrix products of
+:mod:`.transform` (second pass). As each interval's ``g`` is a difference of two table
+rows, a quad is four signed corner terms, and the products run over the distinct edges
+(:func:`corner_plan`): at most one per pixel boundary, where the distinct intervals of
+quads of many sizes are more (the whirl at 1024 px: 503 and 511 edges up to sign, 1 285
+intervals; its near field 117 -> 38 ms). Mirror symmetries of the aperture are used as in
+the far field (there is no Hermitian symmetry here: the chirp is complex).
 
 **The lattice table.** With ``r = step / alpha`` (the output pixel at the distance over the
 raster pitch, ``dtheta d / pitch``; the same at every wavelength) the table's arguments are
@@ -43,6 +46,7 @@ over the power through the aperture (the whole plane holds the represented raste
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 
 import jax
@@ -90,13 +94,16 @@ def lattice_ratio(ratio: float) -> float | None:
 
 @dataclasses.dataclass(frozen=True)
 class LatticeFresnelKernel:
-    """:func:`fresnel_kernel` for an output whose ``step / alpha`` is `ratio` (static,
-    from :func:`lattice_ratio`): the Fresnel integrals by the lattice table."""
+    """:func:`fresnel_kernel` (or, with `edges`, :func:`fresnel_edge_kernel`) for an output
+    whose ``step / alpha`` is `ratio` (static, from :func:`lattice_ratio`): the Fresnel
+    integrals by the lattice table."""
 
     ratio: float
+    edges: bool = False
 
     def __call__(self, centre_px, width_px, axis: FreqAxis, alpha):
-        return fresnel_kernel(centre_px, width_px, axis, alpha, self.ratio)
+        kernel = fresnel_edge_kernel if self.edges else fresnel_kernel
+        return kernel(centre_px, width_px, axis, alpha, self.ratio)
 
 
 def _lattice_table(edges: np.ndarray, index: np.ndarray, ratio: float):
@@ -137,6 +144,25 @@ def _lattice_table(edges: np.ndarray, index: np.ndarray, ratio: float):
     return table
 
 
+def _fresnel_table(edges, axis: FreqAxis, alpha, ratio: float | None):
+    """``E(sqrt(2 alpha) (e - f / alpha))`` for edges `e` (rows) and the frequencies of
+    `axis` (columns), by the lattice table where `ratio` allows it, and ``sqrt(2 alpha)``."""
+    dtype = axis.step.dtype
+    root = jnp.sqrt(2.0 * alpha)
+    lattice = None
+    if ratio is not None and isinstance(edges, np.ndarray) and axis.offset is None:
+        lattice = _lattice_table(edges, np.asarray(axis.index, np.float64), ratio)
+    if lattice is not None:
+        table = lattice(root, axis.step / alpha)
+    else:
+        freq = axis.freq(dtype)
+        table = fresnel_e(root * (jnp.asarray(edges, dtype)[:, None] - freq[None, :] / alpha))
+    # The table is put in memory: fused into each of its readers (real and imaginary parts,
+    # the sum of Gauss's product), XLA's CPU gathers ran per element (the near field at
+    # 1024 px: circle 52 -> 38 ms, whirl 127 -> 113 ms).
+    return materialise(table), root
+
+
 def fresnel_kernel(
     centre_px, width_px, axis: FreqAxis, alpha: Float[Array, ""], ratio: float | None = None
 ) -> tuple[Complex[Array, "n m"], Complex[Array, "n m"]]:
@@ -157,23 +183,81 @@ def fresnel_kernel(
         c, w = jnp.asarray(centre_px, dtype), jnp.asarray(width_px, dtype)
         edges = jnp.concatenate([c - w / 2.0, c + w / 2.0, -c - w / 2.0, -c + w / 2.0])
         where = np.arange(edges.shape[0]).reshape(4, -1)
-    root = jnp.sqrt(2.0 * alpha)
-    lattice = None
-    if ratio is not None and isinstance(edges, np.ndarray) and axis.offset is None:
-        lattice = _lattice_table(edges, np.asarray(axis.index, np.float64), ratio)
-    if lattice is not None:
-        table = lattice(root, axis.step / alpha)
-    else:
-        freq = axis.freq(dtype)
-        table = fresnel_e(root * (jnp.asarray(edges, dtype)[:, None] - freq[None, :] / alpha))
+    table, root = _fresnel_table(edges, axis, alpha, ratio)
     scale = 1.0 / root
-    # The table and the kernels are put in memory: fused into each of their readers (real
-    # and imaginary parts, the sum of Gauss's product), XLA's CPU gathers ran per element
-    # for each (the near field at 1024 px: circle 52 -> 38 ms, whirl 127 -> 113 ms).
-    table = materialise(table)
     plus = (table[where[1]] - table[where[0]]) * scale  # g(f; c)
     minus = (table[where[3]] - table[where[2]]) * scale  # g(f; -c) = g(-f; c)
     return materialise(0.5 * (plus + minus)), materialise(0.5 * (plus - minus))
+
+
+def fresnel_edge_kernel(
+    centre_px: np.ndarray,
+    width_px: np.ndarray,
+    axis: FreqAxis,
+    alpha: Float[Array, ""],
+    ratio: float | None = None,
+) -> tuple[Complex[Array, "n m"], Complex[Array, "n m"]]:
+    """The axis kernel of a corner plan (:func:`corner_plan`): at each edge ``e`` (its
+    `centre_px`, > 0; `width_px` is not used), ``h(f; e) = sgn(e) E(sqrt(2 alpha) (e - f /
+    alpha)) / sqrt(2 alpha)``, split into its parts even and odd in ``e`` as
+    :func:`fresnel_kernel` splits ``g`` (``h(f; -e) = h(-f; e)``, as ``E`` is odd)."""
+    edges = np.asarray(centre_px, np.float64)
+    table, root = _fresnel_table(np.concatenate([edges, -edges]), axis, alpha, ratio)
+    n = edges.size
+    pos, neg = table[:n], table[n:]
+    half_scale = 0.5 / root
+    return materialise((pos - neg) * half_scale), materialise((pos + neg) * half_scale)
+
+
+@functools.lru_cache(maxsize=32)
+def corner_plan(plan: QuadPlan) -> tuple[QuadPlan, np.ndarray, np.ndarray]:
+    """`plan`'s quads as their corners, for the near field's edge kernel.
+
+    A quad's interval kernel is a difference of the Fresnel table at its two edges (``g =
+    (E(s_hi) - E(s_lo)) / sqrt(2 alpha)``), so a quad of amplitude ``a`` is four corner
+    terms ``+-a E(y edge) E(x edge)``: the near field is a sum over the corners of
+    :func:`fresnel_edge_kernel` products. The corners' rows and columns are the distinct
+    edges up to sign, at most 513 for a 1024 px raster (the whirl: 503 rows, where its
+    quads have 1 285 distinct row intervals), and the corner matrix is small enough to be
+    dense (the plan's `dense_inner`): the two products that make the near field shrink by
+    that factor and the per-quad gathers go.
+
+    **Returns:** the corner plan (the plan's mirrors: a mirror-symmetric raster has
+    corners even in the edge once their amplitudes carry ``sgn(e)``, as the kernel does),
+    and for each corner entry the index of its quad in `plan`'s order and its factor (the
+    corner's sign times the signs of its two edges): the entries' amplitudes are
+    ``amplitudes[source] * factor``.
+    """
+    k = plan.quad_row.size
+    cy = plan.sign_y * plan.row_c[plan.quad_row]
+    cx = plan.sign_x * plan.col_c[plan.quad_col]
+    hy, hx = plan.row_s[plan.quad_row] / 2.0, plan.col_s[plan.quad_col] / 2.0
+    # Corners (hi, hi), (lo, lo) with +, (hi, lo), (lo, hi) with -.
+    ey = np.concatenate([cy + hy, cy - hy, cy + hy, cy - hy])
+    ex = np.concatenate([cx + hx, cx - hx, cx - hx, cx + hx])
+    corner_sign = np.repeat([1.0, 1.0, -1.0, -1.0], k)
+    if np.any(ey == 0) or np.any(ex == 0):
+        raise ValueError("quad edges must lie on pixel boundaries (half-integers about the origin)")
+    row_c, quad_row = np.unique(np.abs(ey), return_inverse=True)
+    col_c, quad_col = np.unique(np.abs(ex), return_inverse=True)
+    order = np.argsort(quad_row, kind="stable")
+    source = np.tile(np.arange(k), 4)[order]
+    corners = QuadPlan(
+        layout=plan.layout,
+        mirror_x=plan.mirror_x,
+        mirror_y=plan.mirror_y,
+        row_c=row_c,
+        row_s=np.zeros_like(row_c),
+        col_c=col_c,
+        col_s=np.zeros_like(col_c),
+        quad_row=quad_row[order],
+        quad_col=quad_col[order],
+        sign_y=np.sign(ey)[order],
+        sign_x=np.sign(ex)[order],
+        order=plan.order[source],
+        dense_inner=True,
+    )
+    return corners, source, (corner_sign * np.sign(ey) * np.sign(ex))[order]
 
 
 def near_field_terms(
@@ -185,10 +269,13 @@ def near_field_terms(
     tiles: Tiles | None = None,
     ratio: float | None = None,
 ) -> tuple[Array, Array, Array, Array]:
-    """The near-field parity terms (complex, px^2; see :func:`~.transform.quadrant_terms`);
-    `ratio` as for :func:`fresnel_kernel`."""
-    kernel = fresnel_kernel if ratio is None else LatticeFresnelKernel(ratio)
-    return quadrant_terms(plan, kernel, amplitudes, step_px, npix, alpha, tiles)
+    """The near-field parity terms (complex, px^2; see :func:`~.transform.quadrant_terms`),
+    evaluated over the plan's corners (:func:`corner_plan`); `ratio` as for
+    :func:`fresnel_kernel`."""
+    corners, source, factor = corner_plan(plan)
+    amps = amplitudes[jnp.asarray(source)] * jnp.asarray(factor, amplitudes.dtype)
+    kernel = fresnel_edge_kernel if ratio is None else LatticeFresnelKernel(ratio, edges=True)
+    return quadrant_terms(corners, kernel, amps, step_px, npix, alpha, tiles)
 
 
 def near_field_from_terms(
