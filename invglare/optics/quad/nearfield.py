@@ -94,16 +94,13 @@ def lattice_ratio(ratio: float) -> float | None:
 
 @dataclasses.dataclass(frozen=True)
 class LatticeFresnelKernel:
-    """:func:`fresnel_kernel` (or, with `edges`, :func:`fresnel_edge_kernel`) for an output
-    whose ``step / alpha`` is `ratio` (static, from :func:`lattice_ratio`): the Fresnel
-    integrals by the lattice table."""
+    """:func:`fresnel_edge_kernel` for an output whose ``step / alpha`` is `ratio` (static,
+    from :func:`lattice_ratio`): the Fresnel integrals by the lattice table."""
 
     ratio: float
-    edges: bool = False
 
     def __call__(self, centre_px, width_px, axis: FreqAxis, alpha):
-        kernel = fresnel_edge_kernel if self.edges else fresnel_kernel
-        return kernel(centre_px, width_px, axis, alpha, self.ratio)
+        return fresnel_edge_kernel(centre_px, width_px, axis, alpha, self.ratio)
 
 
 def _lattice_table(edges: np.ndarray, index: np.ndarray, ratio: float):
@@ -145,13 +142,14 @@ def _lattice_table(edges: np.ndarray, index: np.ndarray, ratio: float):
 
 
 def _fresnel_table(edges, axis: FreqAxis, alpha, ratio: float | None):
-    """``E(sqrt(2 alpha) (e - f / alpha))`` for edges `e` (rows) and the frequencies of
-    `axis` (columns), by the lattice table where `ratio` allows it, and ``sqrt(2 alpha)``."""
+    """``E(sqrt(2 alpha) (e - f / alpha))`` for edges `e` (rows; numpy where `ratio` is
+    given) and the frequencies of `axis` (columns), by the lattice table where `ratio`
+    allows it, and ``sqrt(2 alpha)``."""
     dtype = axis.step.dtype
     root = jnp.sqrt(2.0 * alpha)
     lattice = None
-    if ratio is not None and isinstance(edges, np.ndarray) and axis.offset is None:
-        lattice = _lattice_table(edges, np.asarray(axis.index, np.float64), ratio)
+    if ratio is not None and axis.offset is None:
+        lattice = _lattice_table(np.asarray(edges), np.asarray(axis.index, np.float64), ratio)
     if lattice is not None:
         table = lattice(root, axis.step / alpha)
     else:
@@ -164,15 +162,16 @@ def _fresnel_table(edges, axis: FreqAxis, alpha, ratio: float | None):
 
 
 def fresnel_kernel(
-    centre_px, width_px, axis: FreqAxis, alpha: Float[Array, ""], ratio: float | None = None
+    centre_px, width_px, axis: FreqAxis, alpha: Float[Array, ""]
 ) -> tuple[Complex[Array, "n m"], Complex[Array, "n m"]]:
     """Near-field axis kernel: the parts of ``g`` even and odd in the interval's centre.
 
     ``g(f; c)`` over ``[c - w/2, c + w/2]`` without the common phase; ``g(f; -c) = g(-f;
     c)``, so the even part is ``(g(f; c) + g(-f; c)) / 2`` and the odd part the difference.
     Both come from one table of ``E`` at the distinct edges ``+-(c +- w/2)`` (intervals
-    given as traced arrays: one row per edge). `ratio`: ``step / alpha`` where the lattice
-    table may be used (see the module's docstring; None: the whole table).
+    given as traced arrays: one row per edge). The near field of a static plan sums
+    corners (:func:`fresnel_edge_kernel`) instead; this kernel serves the traced plans of
+    progressive frames, culling's coarse pass and the tests' reference.
     """
     dtype = axis.step.dtype
     if isinstance(centre_px, np.ndarray):
@@ -183,7 +182,7 @@ def fresnel_kernel(
         c, w = jnp.asarray(centre_px, dtype), jnp.asarray(width_px, dtype)
         edges = jnp.concatenate([c - w / 2.0, c + w / 2.0, -c - w / 2.0, -c + w / 2.0])
         where = np.arange(edges.shape[0]).reshape(4, -1)
-    table, root = _fresnel_table(edges, axis, alpha, ratio)
+    table, root = _fresnel_table(edges, axis, alpha, None)
     scale = 1.0 / root
     plus = (table[where[1]] - table[where[0]]) * scale  # g(f; c)
     minus = (table[where[3]] - table[where[2]]) * scale  # g(f; -c) = g(-f; c)
@@ -200,7 +199,9 @@ def fresnel_edge_kernel(
     """The axis kernel of a corner plan (:func:`corner_plan`): at each edge ``e`` (its
     `centre_px`, > 0; `width_px` is not used), ``h(f; e) = sgn(e) E(sqrt(2 alpha) (e - f /
     alpha)) / sqrt(2 alpha)``, split into its parts even and odd in ``e`` as
-    :func:`fresnel_kernel` splits ``g`` (``h(f; -e) = h(-f; e)``, as ``E`` is odd)."""
+    :func:`fresnel_kernel` splits ``g`` (``h(f; -e) = h(-f; e)``, as ``E`` is odd).
+    `ratio`: ``step / alpha`` where the lattice table may be used (see the module's
+    docstring; None: the whole table)."""
     edges = np.asarray(centre_px, np.float64)
     table, root = _fresnel_table(np.concatenate([edges, -edges]), axis, alpha, ratio)
     n = edges.size
@@ -271,10 +272,10 @@ def near_field_terms(
 ) -> tuple[Array, Array, Array, Array]:
     """The near-field parity terms (complex, px^2; see :func:`~.transform.quadrant_terms`),
     evaluated over the plan's corners (:func:`corner_plan`); `ratio` as for
-    :func:`fresnel_kernel`."""
+    :func:`fresnel_edge_kernel`."""
     corners, source, factor = corner_plan(plan)
     amps = amplitudes[jnp.asarray(source)] * jnp.asarray(factor, amplitudes.dtype)
-    kernel = fresnel_edge_kernel if ratio is None else LatticeFresnelKernel(ratio, edges=True)
+    kernel = fresnel_edge_kernel if ratio is None else LatticeFresnelKernel(ratio)
     return quadrant_terms(corners, kernel, amps, step_px, npix, alpha, tiles)
 
 

@@ -287,7 +287,7 @@ def _terms(
     sy = jnp.asarray(plan.sign_y, dtype)
     shape = (index_y.size, index_x.size)
     # inner(w, j): the sums over each row's quads of w times column kernel j (0: even, 1: odd).
-    if getattr(plan, "dense_inner", False):
+    if plan.dense_inner:
         kernels_x = (ex, ox)
 
         def inner(weights, j):
